@@ -1,0 +1,364 @@
+"""Pairwise factors: a log-potential over two batched supports, optionally a structured kernel.
+
+A pairwise factor ``psi(x_a, x_b)`` sits on oriented edges ``(a, b)``. Message passing sends
+along an edge either *forward* (source ``a`` -> target ``b``) or *backward* (``b`` -> ``a``).
+The extension surface is deliberately small (compare PyTorch Geometric's ``MessagePassing``):
+
+* :meth:`PairwiseFactor.log_potential` -- the dense table over two supports. Implementing
+  this alone is enough: messages, conditionals and backtracking follow generically.
+* :meth:`PairwiseFactor.message` -- override with a structured kernel when the dense
+  ``(K, K)`` table is too large (see :class:`MonotoneFactor`: O(K * S) per edge, not O(K^2)).
+* :meth:`PairwiseFactor.backtrack` -- override to decode MAP assignments in O(S) rather than
+  O(K) per edge.
+
+Shapes: ``B`` batch, ``E`` edges of this factor (or a subset of them), ``K`` support size
+(states or particles), ``D`` state dimension. Supports are passed as values ``(B, E, K, D)``
+or ``None`` for a discrete support (the state index is the value).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from pgm.semiring import Semiring
+
+__all__ = ["BandedMonotoneFactor", "MonotoneFactor", "PairwiseFactor", "TableFactor"]
+
+EdgeIndex = Tensor | slice
+
+
+class PairwiseFactor:
+    """Base class of pairwise factors on a group of oriented edges ``(a, b)``.
+
+    Attributes:
+        num_edges: number of edges this factor carries parameters for, or ``None`` when the
+            parameters are shared by any number of edges (then any ``edges`` index is valid).
+    """
+
+    num_edges: int | None = None
+
+    def log_potential(
+        self, edges: EdgeIndex, xa: Tensor | None, xb: Tensor | None, num_states: int
+    ) -> Tensor:
+        """Dense log-potential table ``log psi(x_a, x_b)``.
+
+        Args:
+            edges: which of this factor's edges, a LongTensor ``(E,)`` or a slice.
+            xa, xb: support values of the two end nodes, ``(B, E, K, D)``, or ``None`` for
+                discrete supports (the state index is the value).
+            num_states: K.
+
+        Returns:
+            ``(B or 1, E or 1, K, K)`` log-potentials, ``[..., i, j] = log psi(a=i, b=j)``;
+            ``-inf`` marks a forbidden pair.
+        """
+        raise NotImplementedError(f"{type(self).__name__} must implement log_potential")
+
+    def message(
+        self,
+        h: Tensor,
+        edges: EdgeIndex,
+        forward: bool,
+        semiring: Semiring,
+        xa: Tensor | None = None,
+        xb: Tensor | None = None,
+    ) -> Tensor:
+        """Semiring message through the factor.
+
+        ``out[b, e, j] = sum_i psi(i, j) * h[b, e, i]`` (forward, a -> b) or
+        ``out[b, e, i] = sum_j psi(i, j) * h[b, e, j]`` (backward), in the semiring's domain.
+
+        Shapes: ``h`` (B, E, K) -> (B, E, K).
+        """
+        table = semiring.from_log(self.log_potential(edges, xa, xb, h.shape[-1]))
+        if forward:
+            return semiring.sum(semiring.mul(table, h.unsqueeze(-1)), dim=-2)
+        return semiring.sum(semiring.mul(table, h.unsqueeze(-2)), dim=-1)
+
+    def source_given_target(
+        self,
+        target_state: Tensor,
+        edges: EdgeIndex,
+        forward: bool,
+        num_states: int,
+        xa: Tensor | None = None,
+        xb: Tensor | None = None,
+    ) -> Tensor:
+        """Log-potential over the source's states with the target fixed.
+
+        Shapes: ``target_state`` (B, E) long -> (B, E, K).
+        """
+        table = self.log_potential(edges, xa, xb, num_states)
+        b, e = target_state.shape
+        table = table.expand(b, e, num_states, num_states)
+        if forward:  # source a, target b: column b = target
+            idx = target_state[:, :, None, None].expand(b, e, num_states, 1)
+            return table.gather(-1, idx).squeeze(-1)
+        idx = target_state[:, :, None, None].expand(b, e, 1, num_states)
+        return table.gather(-2, idx).squeeze(-2)
+
+    def backtrack(
+        self,
+        h: Tensor,
+        target_state: Tensor,
+        edges: EdgeIndex,
+        forward: bool,
+        xa: Tensor | None = None,
+        xb: Tensor | None = None,
+    ) -> Tensor:
+        """MAP decoding step: ``argmax_i h[b, e, i] + log psi(i -> target_state[b, e])``.
+
+        Shapes: ``h`` (B, E, K), ``target_state`` (B, E) -> (B, E) long.
+        """
+        cond = self.source_given_target(target_state, edges, forward, h.shape[-1], xa, xb)
+        return (h + cond).argmax(-1)
+
+
+def _check_finite_or_neg_inf(name: str, x: Tensor) -> None:
+    if torch.isnan(x).any() or torch.isposinf(x).any():
+        raise ValueError(f"{name} must be finite or -inf (forbidden); found NaN or +inf")
+
+
+class TableFactor(PairwiseFactor):
+    """A dense table of log-potentials.
+
+    Args:
+        log_table: ``(K, K)`` shared by every edge, ``(E, K, K)`` one table per edge, or
+            ``(B, E, K, K)`` per batch item and edge. Entry ``[..., i, j]`` is
+            ``log psi(x_a = i, x_b = j)``; ``-inf`` forbids the pair.
+    """
+
+    def __init__(self, log_table: Tensor):
+        if not isinstance(log_table, Tensor):
+            raise TypeError(f"log_table must be a torch.Tensor, got {type(log_table).__name__}")
+        if log_table.dim() not in (2, 3, 4) or log_table.shape[-1] != log_table.shape[-2]:
+            raise ValueError(
+                "log_table must have shape (K, K), (E, K, K) or (B, E, K, K); "
+                f"got {tuple(log_table.shape)}"
+            )
+        _check_finite_or_neg_inf("log_table", log_table)
+        while log_table.dim() < 4:
+            log_table = log_table.unsqueeze(0)
+        self.table = log_table  # (B or 1, E or 1, K, K)
+        self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
+
+    def log_potential(self, edges, xa, xb, num_states):
+        if self.table.shape[-1] != num_states:
+            raise ValueError(
+                f"TableFactor has {self.table.shape[-1]} states per node but the graph has "
+                f"{num_states}"
+            )
+        if self.table.shape[1] == 1:
+            return self.table
+        return self.table[:, edges]
+
+
+class MonotoneFactor(PairwiseFactor):
+    """Monotone transition ``0 <= x_b - x_a <= max_step`` over discrete states.
+
+    This is the time-warping constraint of a correspondence chain (C(t'+1) - C(t') in
+    ``[0, S]``). Its message is a trailing window semiring-sum of width ``S + 1`` (O(K * S),
+    and a fused ``max_pool1d`` under max-product); with ``max_step=None`` the step is
+    unbounded and the message is a prefix semiring-sum (O(K)). The dense ``(K, K)`` table is
+    never built for inference (it is available through :meth:`log_potential` for tests).
+
+    Args:
+        max_step: S >= 1, or ``None`` for any non-negative step.
+        step_log_potential: optional ``(S + 1,)`` log-potential of each step size 0..S (e.g.
+            a penalty for leaving the expected slope); needs a finite ``max_step``.
+    """
+
+    def __init__(self, max_step: int | None, step_log_potential: Tensor | None = None):
+        if max_step is not None:
+            if isinstance(max_step, bool) or not isinstance(max_step, int):
+                raise TypeError(f"max_step must be an int or None, got {type(max_step).__name__}")
+            if max_step < 1:
+                raise ValueError(f"max_step (S) must be >= 1, got {max_step}")
+        if step_log_potential is not None:
+            if max_step is None:
+                raise ValueError("step_log_potential needs a finite max_step")
+            if step_log_potential.shape != (max_step + 1,):
+                raise ValueError(
+                    f"step_log_potential must have shape ({max_step + 1},) for max_step="
+                    f"{max_step}; got {tuple(step_log_potential.shape)}"
+                )
+            _check_finite_or_neg_inf("step_log_potential", step_log_potential)
+        self.max_step = max_step
+        self.step_log_potential = step_log_potential
+
+    def log_potential(self, edges, xa, xb, num_states):
+        i = torch.arange(num_states)
+        step = i[None, :] - i[:, None]  # [a, b] -> b - a
+        hi = num_states if self.max_step is None else self.max_step
+        allowed = (step >= 0) & (step <= hi)
+        table = torch.full((num_states, num_states), -math.inf, dtype=torch.get_default_dtype())
+        if self.step_log_potential is None:
+            table[allowed] = 0.0
+        else:
+            table = table.to(self.step_log_potential.dtype)
+            table[allowed] = self.step_log_potential[step[allowed]]
+        return table[None, None]
+
+    def message(self, h, edges, forward, semiring, xa=None, xb=None):
+        # Backward (b -> a) is the forward kernel on the reversed state axis.
+        x = h if forward else h.flip(-1)
+        if self.max_step is None:
+            out = semiring.cumsum(x, dim=-1)
+        elif self.step_log_potential is None:
+            out = semiring.window_sum(x, self.max_step + 1)
+        else:
+            out = self._weighted_window(x, semiring)
+        return out if forward else out.flip(-1)
+
+    def _weighted_window(self, x: Tensor, semiring: Semiring) -> Tensor:
+        s = self.max_step
+        w = semiring.from_log(self.step_log_potential.to(x.dtype))
+        padded = F.pad(x, (s, 0), value=semiring.zero)
+        windows = padded.unfold(-1, s + 1, 1)  # (..., K, S+1); window[j, m] = x[j - S + m]
+        return semiring.sum(semiring.mul(windows, w.flip(0)), dim=-1)
+
+    def viterbi(self, unary: Tensor, rescale_every: int = 32) -> tuple[Tensor, Tensor] | None:
+        """Fused chain Viterbi with this factor on every edge (the time-alignment hot path).
+
+        Forward rows live in one buffer padded with S columns of ``-inf`` so that each step
+        is one ``max_pool1d`` and one add; rows are shifted to max 0 every ``rescale_every``
+        steps (float32 keeps its precision over any length); backtracking reads S + 1
+        entries per step in NumPy. Same result as the generic path (tested).
+
+        Shapes: ``unary`` (B, N, K) -> score (B,), states (B, N) long. Returns ``None`` when
+        the factor has step potentials or no step bound (the generic path handles those).
+        """
+        if self.max_step is None or self.step_log_potential is not None:
+            return None
+        s = self.max_step
+        b, n, _k = unary.shape
+        alpha = F.pad(unary, (s, 0), value=-math.inf)  # (B, N, S + K), rows filled in place
+        log_scale = torch.zeros(b, dtype=torch.float64, device=unary.device)
+        for t in range(1, n):
+            pooled = F.max_pool1d(alpha[:, t - 1 : t], kernel_size=s + 1, stride=1)
+            alpha[:, t : t + 1, s:].add_(pooled)
+            if t % rescale_every == 0:
+                row = alpha[:, t, s:]
+                c = row.amax(-1, keepdim=True)
+                c = torch.where(torch.isfinite(c), c, torch.zeros_like(c))
+                row.sub_(c)
+                log_scale += c.squeeze(-1).double()
+        last = alpha[:, -1, s:]
+        score = (last.amax(-1).double() + log_scale).to(unary.dtype)
+        states = np.empty((b, n), dtype=np.int64)
+        rows = alpha.cpu().numpy()
+        end = last.argmax(-1).cpu().numpy()
+        for bi in range(b):
+            rows_b = rows[bi]
+            j = int(end[bi])
+            states[bi, n - 1] = j
+            for t in range(n - 2, -1, -1):
+                # padded columns [j, j + S] hold states j - S .. j
+                j = j - s + int(rows_b[t, j : j + s + 1].argmax())
+                states[bi, t] = j
+        return score, torch.from_numpy(states).to(unary.device)
+
+    def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
+        k = torch.arange(num_states, device=target_state.device)
+        step = target_state.unsqueeze(-1) - k if forward else k - target_state.unsqueeze(-1)
+        hi = num_states if self.max_step is None else self.max_step
+        allowed = (step >= 0) & (step <= hi)
+        dtype = torch.get_default_dtype()
+        if self.step_log_potential is None:
+            return torch.where(allowed, 0.0, -math.inf).to(dtype)
+        w = self.step_log_potential[step.clamp(0, hi)]
+        return torch.where(allowed, w, torch.full_like(w, -math.inf))
+
+    def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
+        if self.max_step is None:
+            return super().backtrack(h, target_state, edges, forward, xa, xb)
+        # Only the S + 1 states a step can come from are looked at: O(S) per edge.
+        s = self.max_step
+        k = h.shape[-1]
+        offs = torch.arange(s + 1, device=h.device)
+        cand = target_state.unsqueeze(-1) - offs if forward else target_state.unsqueeze(-1) + offs
+        valid = (cand >= 0) & (cand < k)
+        vals = h.gather(-1, cand.clamp(0, k - 1))
+        if self.step_log_potential is not None:
+            vals = vals + self.step_log_potential.to(vals.dtype)
+        vals = torch.where(valid, vals, torch.full_like(vals, -math.inf))
+        return cand.gather(-1, vals.argmax(-1, keepdim=True)).squeeze(-1)
+
+
+class BandedMonotoneFactor(PairwiseFactor):
+    """Monotone transition between nodes whose states are sliding windows of one integer axis.
+
+    Node ``n`` has ``W`` states standing for the absolute positions ``offsets[n] + i``
+    (``i`` in ``[0, W)``); the factor allows ``0 <= pos_b - pos_a <= max_step``. This is the
+    band of a coarse-to-fine time alignment: each video frame keeps only a window of reference
+    frames around the upsampled coarse path. O(W * S) per edge.
+
+    Edges must be consecutive pairs ``(n, n + 1)``, addressed by ``n`` (as in
+    :func:`pgm.chain.chain_map`): edge ``n`` joins node ``n`` (a) to node ``n + 1`` (b).
+
+    Args:
+        max_step: S >= 1.
+        offsets: ``(N,)`` long, first absolute position of each node's window.
+    """
+
+    def __init__(self, max_step: int, offsets: Tensor):
+        if isinstance(max_step, bool) or not isinstance(max_step, int) or max_step < 1:
+            raise ValueError(f"max_step (S) must be an int >= 1, got {max_step!r}")
+        if offsets.dim() != 1 or offsets.dtype.is_floating_point:
+            raise ValueError(f"offsets must be a 1-D integer tensor; got {tuple(offsets.shape)}")
+        self.max_step = max_step
+        self.offsets = offsets.long()
+        self.num_edges = offsets.shape[0] - 1
+
+    def _shift(self, edges: EdgeIndex) -> Tensor:
+        n = torch.arange(self.num_edges)[edges]
+        return self.offsets[n + 1] - self.offsets[n]  # (E,)
+
+    def log_potential(self, edges, xa, xb, num_states):
+        d = self._shift(edges)  # pos_b - pos_a = d + j - i
+        i = torch.arange(num_states)
+        step = d[:, None, None] + i[None, None, :] - i[None, :, None]
+        allowed = (step >= 0) & (step <= self.max_step)
+        zero = torch.zeros((), dtype=torch.get_default_dtype())
+        return torch.where(allowed, zero, -math.inf).unsqueeze(0)
+
+    def _gather_index(self, edges: EdgeIndex, width: int, forward: bool) -> tuple[Tensor, Tensor]:
+        d = self._shift(edges)[:, None, None]
+        i = torch.arange(width)[None, :, None]
+        s = torch.arange(self.max_step + 1)[None, None, :]
+        # forward: target j collects source i = j + d - s; backward: target i collects j = i - d + s
+        src = i + d - s if forward else i - d + s
+        valid = (src >= 0) & (src < width)
+        return src.clamp(0, width - 1), valid  # (E, W, S+1)
+
+    def message(self, h, edges, forward, semiring, xa=None, xb=None):
+        b, e, w = h.shape
+        src, valid = self._gather_index(edges, w, forward)
+        vals = h.unsqueeze(2).expand(b, e, w, w).gather(-1, src.unsqueeze(0).expand(b, -1, -1, -1))
+        vals = torch.where(valid, vals, torch.full_like(vals, semiring.zero))
+        return semiring.sum(vals, dim=-1)
+
+    def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
+        d = self._shift(edges)[None, :, None]
+        i = torch.arange(num_states)[None, None, :]
+        t = target_state.unsqueeze(-1)
+        step = t + d - i if forward else i + d - t
+        allowed = (step >= 0) & (step <= self.max_step)
+        zero = torch.zeros((), dtype=torch.get_default_dtype())
+        return torch.where(allowed, zero, -math.inf)
+
+    def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
+        d = self._shift(edges)[None, :, None]
+        s = torch.arange(self.max_step + 1)[None, None, :]
+        t = target_state.unsqueeze(-1)
+        cand = t + d - s if forward else t - d + s
+        w = h.shape[-1]
+        valid = (cand >= 0) & (cand < w)
+        vals = h.gather(-1, cand.clamp(0, w - 1))
+        vals = torch.where(valid, vals, torch.full_like(vals, -math.inf))
+        return cand.gather(-1, vals.argmax(-1, keepdim=True)).squeeze(-1)

@@ -1,0 +1,255 @@
+"""Time alignment against brute force, tslearn and dtaidistance, plus robustness and scale."""
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from motion.alignment import (
+    AlignmentError,
+    band_mask,
+    chain_align,
+    coarse_to_fine_align,
+    dtw,
+    robust_cost,
+    sequence_cost_fn,
+    slope_step_cost,
+    soft_align,
+)
+
+
+def _monotone_paths(n, k, s):
+    for path in itertools.product(range(k), repeat=n):
+        steps = np.diff(path)
+        if ((steps >= 0) & (steps <= s)).all():
+            yield path
+
+
+def _brute_dtw(cost):
+    n, m = cost.shape
+    acc = np.full((n, m), np.inf)
+    for i in range(n):
+        for j in range(m):
+            prev = (
+                0.0
+                if i == j == 0
+                else min(
+                    acc[i - 1, j - 1] if i and j else np.inf,
+                    acc[i - 1, j] if i else np.inf,
+                    acc[i, j - 1] if j else np.inf,
+                )
+            )
+            acc[i, j] = cost[i, j] + prev
+    return acc[-1, -1]
+
+
+def _warped_features(seed, num_video=100, slope=4.0, corrupt=False, noise=0.02):
+    """Smooth 8-D reference features, a non-linearly warped copy as the 'video'.
+
+    With ``corrupt``, video frames 40-50 are replaced by frames 50-60 (the proposal's Fig. 12
+    experiment). Returns cost (T', T) float64, the true C (T',), T.
+    """
+    g = torch.Generator().manual_seed(seed)
+    num_ref = int(num_video * slope) + 20
+    t = torch.arange(num_ref, dtype=torch.float64)
+    freqs = torch.rand(8, generator=g, dtype=torch.float64) * 0.05 + 0.01
+    phase = torch.rand(8, generator=g, dtype=torch.float64) * 2 * math.pi
+    ref = torch.sin(t[:, None] * freqs + phase)
+    u = torch.linspace(0, 1, num_video, dtype=torch.float64)
+    bend = 1 + float(torch.rand(1, generator=g))
+    warp = (u + 0.05 * torch.sin(2 * math.pi * u * bend)) * (num_ref - 1)
+    true = torch.cummax(warp.round().long().clamp(0, num_ref - 1), 0).values
+    video = ref[true].clone()
+    if corrupt:
+        video[40:51] = video[50:61].clone()
+    video += noise * torch.randn(video.shape, generator=g, dtype=torch.float64)
+    cost = (video[:, None] - ref[None]).square().mean(-1)
+    return cost, true, num_ref
+
+
+# -- chain alignment ---------------------------------------------------------------------------
+@pytest.mark.parametrize(("n", "k", "s"), [(4, 5, 1), (5, 4, 2), (3, 6, 5)])
+def test_chain_align_is_the_best_monotone_path(n, k, s):
+    torch.manual_seed(n * 10 + k)
+    cost = torch.rand(2, n, k, dtype=torch.float64)
+    result = chain_align(cost, s)
+    for b in range(2):
+        best = min(
+            sum(cost[b, i, c].item() for i, c in enumerate(p)) for p in _monotone_paths(n, k, s)
+        )
+        assert result.cost[b].item() == pytest.approx(best, abs=1e-12)
+    steps = result.path.diff(dim=-1)
+    assert ((steps >= 0) & (steps <= s)).all()
+
+
+def test_chain_align_fixed_ends_and_band():
+    torch.manual_seed(0)
+    n, k, s = 4, 6, 2
+    cost = torch.rand(n, k, dtype=torch.float64)
+    band = band_mask(n, k, 1)
+    result = chain_align(cost, s, fix_start=True, fix_end=True, band=band)
+    allowed = [
+        p
+        for p in _monotone_paths(n, k, s)
+        if p[0] == 0 and p[-1] == k - 1 and all(band[i, c] for i, c in enumerate(p))
+    ]
+    best = min(sum(cost[i, c].item() for i, c in enumerate(p)) for p in allowed)
+    assert result.cost.item() == pytest.approx(best, abs=1e-12)
+    assert result.path[0, 0] == 0 and result.path[0, -1] == k - 1
+
+
+def test_chain_align_with_step_cost_matches_brute_force():
+    torch.manual_seed(1)
+    n, k, s = 5, 6, 3
+    cost = torch.rand(n, k, dtype=torch.float64)
+    step_cost = slope_step_cost(s, 1.2, 0.7).double()
+    result = chain_align(cost, s, step_cost=step_cost)
+
+    def energy(p):
+        return sum(cost[i, c].item() for i, c in enumerate(p)) + sum(
+            step_cost[b - a].item() for a, b in itertools.pairwise(p)
+        )
+
+    best = min(_monotone_paths(n, k, s), key=energy)
+    assert tuple(result.path[0].tolist()) == best
+
+
+def test_soft_alignment_matches_brute_force_posterior():
+    torch.manual_seed(2)
+    n, k, s, tau = 4, 5, 2, 0.3
+    cost = torch.rand(n, k, dtype=torch.float64)
+    soft = soft_align(cost, s, temperature=tau)
+    paths = list(_monotone_paths(n, k, s))
+    energies = torch.tensor(
+        [sum(cost[i, c].item() for i, c in enumerate(p)) for p in paths], dtype=torch.float64
+    )
+    w = torch.softmax(-energies / tau, 0)
+    post = torch.zeros(n, k, dtype=torch.float64)
+    for p, wp in zip(paths, w, strict=True):
+        for i, c in enumerate(p):
+            post[i, c] += wp
+    torch.testing.assert_close(soft.posterior[0], post)
+    torch.testing.assert_close(soft.expected[0], (post * torch.arange(k)).sum(-1))
+    torch.testing.assert_close(soft.log_partition[0], tau * torch.logsumexp(-energies / tau, 0))
+
+
+def test_soft_alignment_concentrates_on_the_hard_path():
+    cost, _, _ = _warped_features(3, num_video=40, slope=3.0)
+    hard = chain_align(cost, 8).path[0]
+    soft = soft_align(cost, 8, temperature=1e-5)
+    assert torch.equal(soft.posterior[0].argmax(-1), hard)
+    assert (soft.expected[0] - hard).abs().max() < 0.5
+    assert soft.std.mean() < 0.05
+
+
+# -- classic DTW -------------------------------------------------------------------------------
+@pytest.mark.parametrize(("n", "m"), [(1, 1), (1, 7), (6, 1), (30, 50), (80, 40)])
+def test_dtw_matches_tslearn_and_brute_force(n, m):
+    tslearn = pytest.importorskip("tslearn.metrics")
+    rng = np.random.default_rng(n * 100 + m)
+    cost = rng.random((n, m))
+    ours = dtw(torch.from_numpy(cost))
+    path, total = tslearn.dtw_path_from_metric(cost, metric="precomputed")
+    assert ours.cost == pytest.approx(total, rel=1e-12)
+    assert ours.cost == pytest.approx(_brute_dtw(cost), rel=1e-12)
+    assert [tuple(p) for p in ours.path.tolist()] == [tuple(p) for p in path]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_dtw_matches_dtaidistance(seed):
+    dtai = pytest.importorskip("dtaidistance.dtw")
+    rng = np.random.default_rng(seed)
+    x, y = rng.random(60), rng.random(90)
+    cost = torch.from_numpy((x[:, None] - y[None]) ** 2)
+    ours = dtw(cost)
+    dist, paths = dtai.warping_paths_fast(x, y)
+    assert ours.cost == pytest.approx(dist**2, rel=1e-9)
+    assert [tuple(p) for p in ours.path.tolist()] == [tuple(p) for p in dtai.best_path(paths)]
+
+
+def test_dtw_choice_is_the_most_similar_frame_on_the_path():
+    rng = np.random.default_rng(5)
+    cost = torch.from_numpy(rng.random((20, 45)))
+    result = dtw(cost)
+    for i in range(20):
+        cols = result.path[result.path[:, 0] == i, 1]
+        assert result.choice[i] == cols[cost[i, cols].argmin()]
+
+
+# -- robustness --------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(4))
+def test_robust_chain_confines_the_error_to_the_replaced_segment(seed):
+    cost, true, num_ref = _warped_features(seed, corrupt=True)
+    outside = torch.ones(100, dtype=torch.bool)
+    outside[40:51] = False
+    s = 12
+    slope = (num_ref - 1) / 99
+    robust = robust_cost(cost)
+    prior = slope_step_cost(s, slope, 0.05 * float(robust.max())).double()
+    path = chain_align(robust, s, fix_start=True, fix_end=True, step_cost=prior).path[0]
+    err = (path - true).abs().double()
+    assert err[outside].mean() < 0.75
+    assert err[~outside].mean() < 8.0
+    dtw_err = (dtw(cost).choice - true).abs().double()
+    assert dtw_err[~outside].mean() > 20.0  # the proposal's DTW is dragged along the copy
+
+
+def test_robust_cost_modes():
+    cost = torch.tensor([[0.0, 1.0, 10.0]])
+    torch.testing.assert_close(robust_cost(cost, 2.0), torch.tensor([[0.0, 1.0, 2.0]]))
+    sat = robust_cost(cost, 2.0, mode="saturate")
+    assert (
+        sat[0, 0] == 0 and sat[0, 2] < 2.0 and sat[0, 1] == pytest.approx(2 * (1 - math.exp(-0.5)))
+    )
+    with pytest.raises(AlignmentError, match="mode must be"):
+        robust_cost(cost, 2.0, mode="clip")
+
+
+# -- long sequences ----------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(3))
+def test_coarse_to_fine_equals_full_solution_on_smooth_warps(seed):
+    g = torch.Generator().manual_seed(seed)
+    num_ref, num_video = 2400, 500
+    t = torch.arange(num_ref, dtype=torch.float64)
+    ref = torch.sin(
+        t[:, None] * (torch.rand(6, generator=g, dtype=torch.float64) * 0.02 + 0.005)
+        + torch.rand(6, generator=g, dtype=torch.float64) * 6
+    )
+    u = torch.linspace(0, 1, num_video, dtype=torch.float64)
+    true = ((u + 0.06 * torch.sin(2 * math.pi * u)) * (num_ref - 1)).round().long()
+    video = ref[true] + 0.01 * torch.randn(num_video, 6, generator=g, dtype=torch.float64)
+    fn = sequence_cost_fn(video, ref)
+    full = chain_align(fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1)), 10)
+    c2f = coarse_to_fine_align(fn, num_video, num_ref, 10, max_cells=50_000)
+    assert torch.equal(c2f.path, full.path)
+    torch.testing.assert_close(c2f.cost, full.cost)
+
+
+# -- bad input ---------------------------------------------------------------------------------
+def test_alignment_input_errors():
+    with pytest.raises(
+        AlignmentError, match=r"cost must have shape \(T', T\) or \(B, T', T\); got \(5,\)"
+    ):
+        chain_align(torch.zeros(5), 2)
+    with pytest.raises(
+        AlignmentError, match=r"cost contains NaN \(1 entries; first at batch 0, t'=1, t=2\)"
+    ):
+        bad = torch.zeros(3, 4)
+        bad[1, 2] = math.nan
+        chain_align(bad, 2)
+    with pytest.raises(AlignmentError, match=r"max_step \(S\) must be >= 1; got 0"):
+        chain_align(torch.zeros(3, 4), 0)
+    with pytest.raises(AlignmentError, match="must be non-empty"):
+        chain_align(torch.zeros(0, 4), 1)
+    with pytest.raises(AlignmentError, match="must be non-empty"):
+        dtw(torch.zeros(3, 0))
+    with pytest.raises(AlignmentError, match="floating-point"):
+        dtw(torch.zeros(3, 3, dtype=torch.long))
+    with pytest.raises(AlignmentError, match="no monotone path with max_step=1"):
+        chain_align(torch.zeros(3, 10), 1, fix_start=True, fix_end=True)
+    with pytest.raises(AlignmentError, match=r"step_cost must have shape \(3,\)"):
+        chain_align(torch.zeros(3, 4), 2, step_cost=torch.zeros(4))
+    with pytest.raises(AlignmentError, match="same F"):
+        sequence_cost_fn(torch.zeros(3, 2), torch.zeros(4, 3))

@@ -1,0 +1,171 @@
+"""Chains: long-chain numerics, structured monotone kernels, fused Viterbi."""
+
+import math
+
+import pytest
+import torch
+
+from pgm import (
+    BandedMonotoneFactor,
+    CountingSemiring,
+    FactorGraph,
+    GraphError,
+    InfeasibleError,
+    LogSemiring,
+    MaxSemiring,
+    MonotoneFactor,
+    TableFactor,
+    chain_inference,
+    chain_map,
+    tree_map,
+)
+from tests.conftest import brute_marginals, enumerate_scores
+
+
+def _chain_edges(n):
+    return torch.stack([torch.arange(n - 1), torch.arange(1, n)], 1)
+
+
+def _count_monotone(n, k, s):
+    """Number of sequences x_0..x_{n-1} in [0, k) with steps in [0, s], by plain DP."""
+    ways = [1] * k
+    for _ in range(n - 1):
+        ways = [sum(ways[max(0, j - s) : j + 1]) for j in range(k)]
+    return sum(ways)
+
+
+@pytest.mark.parametrize(("n", "k", "s"), [(2, 5, 1), (6, 5, 2), (10, 8, 3), (4, 6, 10)])
+def test_monotone_counting_matches_combinatorics(n, k, s):
+    unary = torch.zeros(1, n, k, dtype=torch.float64)
+    count = chain_inference(unary, MonotoneFactor(s), CountingSemiring()).log_partition.item()
+    assert count == _count_monotone(n, k, s)
+
+
+@pytest.mark.parametrize(("n", "k"), [(3, 4), (8, 6)])
+def test_unbounded_monotone_counts_multisets(n, k):
+    # non-decreasing sequences of length n over k values: C(n + k - 1, n)
+    unary = torch.zeros(1, n, k, dtype=torch.float64)
+    count = chain_inference(unary, MonotoneFactor(None), CountingSemiring()).log_partition.item()
+    assert count == math.comb(n + k - 1, n)
+
+
+@pytest.mark.parametrize(
+    "factor",
+    [
+        MonotoneFactor(2),
+        MonotoneFactor(None),
+        MonotoneFactor(3, torch.tensor([0.0, -0.5, 0.3, -2.0])),
+    ],
+    ids=["window", "prefix", "weighted"],
+)
+@pytest.mark.parametrize(
+    "semiring", [LogSemiring(), MaxSemiring(), CountingSemiring()], ids=lambda s: s.name
+)
+def test_structured_kernel_equals_its_dense_table(factor, semiring):
+    torch.manual_seed(0)
+    n, k = 9, 7
+    unary = torch.randn(3, n, k, dtype=torch.float64)
+    dense = TableFactor(factor.log_potential(None, None, None, k).double())
+    a = chain_inference(unary, factor, semiring)
+    b = chain_inference(unary, dense, semiring)
+    torch.testing.assert_close(a.log_partition, b.log_partition)
+    torch.testing.assert_close(a.log_marginals, b.log_marginals)
+
+
+def test_monotone_chain_against_brute_force():
+    torch.manual_seed(1)
+    n, k = 5, 4
+    unary = torch.randn(2, n, k, dtype=torch.float64)
+    factor = MonotoneFactor(1)
+    configs, scores = enumerate_scores(
+        unary, [(_chain_edges(n), factor.log_potential(None, None, None, k).double())]
+    )
+    res = chain_inference(unary, factor)
+    torch.testing.assert_close(res.log_partition, torch.logsumexp(scores, -1))
+    torch.testing.assert_close(res.log_marginals.exp(), brute_marginals(configs, scores, k))
+    best = chain_map(unary, factor)
+    torch.testing.assert_close(best.log_partition, scores.max(-1).values)
+    assert torch.equal(best.assignment, configs[scores.argmax(-1)])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_thousand_step_chain_does_not_underflow(dtype):
+    """Potentials of e^-50 per node: the linear-space product would underflow at step ~15."""
+    torch.manual_seed(2)
+    n, k = 1000, 5
+    unary = (-50.0 + torch.rand(1, n, k, dtype=torch.float64)).to(dtype)
+    table = torch.rand(k, k, dtype=torch.float64).to(dtype)
+    ref = chain_inference(unary.double(), TableFactor(table.double()))
+    for semiring in [LogSemiring(), MaxSemiring()]:
+        res = chain_inference(unary, TableFactor(table), semiring)
+        assert torch.isfinite(res.log_partition).all()
+        assert torch.isfinite(res.log_marginals).all()
+    res = chain_inference(unary, TableFactor(table))
+    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    assert abs(res.log_partition.double().item() - ref.log_partition.item()) / 5e4 < tol
+    torch.testing.assert_close(
+        res.log_marginals.exp().double(), ref.log_marginals.exp(), atol=tol * 100, rtol=0
+    )
+    # Closed form with uniform potentials: log Z = n log k exactly.
+    flat = chain_inference(
+        torch.zeros(1, n, k, dtype=dtype), TableFactor(torch.zeros(k, k, dtype=dtype))
+    )
+    assert flat.log_partition.item() == pytest.approx(n * math.log(k), rel=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_viterbi_equals_generic_path(dtype):
+    torch.manual_seed(3)
+    unary = torch.rand(3, 300, 400, dtype=dtype).neg()
+    unary[1, :, :50] = -math.inf  # forbidden region
+    factor = MonotoneFactor(5)
+    fused = chain_map(unary, factor)
+    generic = chain_map(unary, factor, use_fused=False)
+    assert torch.equal(fused.assignment, generic.assignment)
+    torch.testing.assert_close(fused.log_partition, generic.log_partition)
+    steps = fused.assignment.diff(dim=-1)
+    assert ((steps >= 0) & (steps <= 5)).all()
+    # score of the argmax equals the max
+    score = unary.gather(-1, fused.assignment[..., None]).squeeze(-1).sum(-1)
+    torch.testing.assert_close(score, fused.log_partition)
+
+
+def test_banded_factor_equals_dense_table():
+    torch.manual_seed(4)
+    n, w = 25, 6
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.randint(0, 4, (n - 1,)).cumsum(0)])
+    factor = BandedMonotoneFactor(3, offsets)
+    dense = TableFactor(factor.log_potential(slice(0, n - 1), None, None, w).double())
+    unary = torch.randn(2, n, w, dtype=torch.float64)
+    for semiring in [LogSemiring(), MaxSemiring(), CountingSemiring()]:
+        a = chain_inference(unary, factor, semiring)
+        b = chain_inference(unary, dense, semiring)
+        torch.testing.assert_close(a.log_partition, b.log_partition)
+    a = chain_map(unary, factor)
+    assert torch.equal(a.assignment, chain_map(unary, dense).assignment)
+    assert torch.equal(
+        a.assignment, tree_map(FactorGraph(unary, [(_chain_edges(n), factor)])).assignment
+    )
+
+
+def test_infeasible_chain_raises():
+    unary = torch.zeros(1, 3, 10)
+    unary[:, 0, 1:] = -math.inf
+    unary[:, 2, :9] = -math.inf  # need +9 in two steps of at most 2
+    with pytest.raises(InfeasibleError, match="no configuration"):
+        chain_map(unary, MonotoneFactor(2))
+
+
+def test_chain_input_errors():
+    with pytest.raises(GraphError, match=r"shape \(B, N, K\) or \(N, K\); got \(4,\)"):
+        chain_map(torch.zeros(4), MonotoneFactor(1))
+    with pytest.raises(GraphError, match="NaN"):
+        chain_map(torch.tensor([[0.0, math.nan]]), MonotoneFactor(1))
+    with pytest.raises(GraphError, match="N >= 1"):
+        chain_map(torch.zeros(1, 0, 3), MonotoneFactor(1))
+    with pytest.raises(GraphError, match="parameters for 2 edges; a chain of 5 nodes has 4"):
+        chain_map(torch.zeros(5, 3), TableFactor(torch.zeros(2, 3, 3)))
+    with pytest.raises(ValueError, match="max_step"):
+        MonotoneFactor(0)
+    with pytest.raises(ValueError, match=r"step_log_potential must have shape \(3,\)"):
+        MonotoneFactor(2, torch.zeros(2))
