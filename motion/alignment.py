@@ -118,6 +118,9 @@ def _check_cost(cost: Tensor, name: str = "cost") -> Tensor:
         raise AlignmentError(f"{name} must be a floating-point tensor; got {cost.dtype}")
     if cost.shape[0] == 0 or cost.shape[1] == 0 or cost.shape[2] == 0:
         raise AlignmentError(f"{name} must be non-empty; got shape {tuple(cost.shape)}")
+    total = cost.sum()  # one pass; only a NaN or an infinity somewhere needs a closer look
+    if torch.isfinite(total):
+        return cost
     nan = torch.isnan(cost)
     if nan.any():
         b, i, j = (int(x) for x in nan.nonzero()[0])
@@ -200,7 +203,7 @@ def band_mask(num_video: int, num_ref: int, radius: int) -> Tensor:
 
 
 def _unary(cost: Tensor, band: Tensor | None, fix_start: bool, fix_end: bool) -> Tensor:
-    unary = -cost
+    unary = -cost  # a fresh tensor: edited in place below and usable as a work buffer
     if band is not None:
         if band.shape != cost.shape[-2:]:
             raise AlignmentError(
@@ -208,10 +211,8 @@ def _unary(cost: Tensor, band: Tensor | None, fix_start: bool, fix_end: bool) ->
             )
         unary = unary.masked_fill(~band, -math.inf)
     if fix_start:
-        unary = unary.clone()
         unary[:, 0, 1:] = -math.inf
     if fix_end:
-        unary = unary.clone()
         unary[:, -1, :-1] = -math.inf
     return unary
 
@@ -261,7 +262,8 @@ def chain_align(
     unary = _unary(cost, band, fix_start, fix_end)
     factor = _step_factor(max_step, step_cost)
     try:
-        result = chain_map(unary, factor)
+        # unary is our own tensor (made by _unary), so the fused kernel may work in it
+        result = chain_map(unary, factor, overwrite=True)
     except InfeasibleError as err:
         raise AlignmentError(
             f"no monotone path with max_step={max_step} fits the constraints "
@@ -318,30 +320,31 @@ def dtw(cost: Tensor) -> DTWResult:
     cost = _check_cost(cost)
     if cost.shape[0] != 1:
         raise AlignmentError(f"dtw takes one (T', T) cost matrix; got {tuple(cost.shape)}")
-    if not torch.isfinite(cost).all():
+    if not torch.isfinite(cost.sum()):  # finite costs sum to a finite number
         raise AlignmentError("dtw needs finite costs (use chain_align for forbidden pairs)")
-    d = cost[0].double()
-    n, _m = d.shape
-    acc = torch.empty_like(d)
-    acc[0] = torch.cumsum(d[0], 0)
-    inf = torch.tensor([math.inf], dtype=d.dtype)
+    # A sequential row recursion: NumPy's ufuncs have less per-call overhead than torch ops
+    # here, and minimum.accumulate is a cummin without indices.
+    d = cost[0].double().numpy()
+    n, m = d.shape
+    c = np.cumsum(d, 1)  # c[i, t] = sum_{u <= t} d[i, u], all rows at once
+    acc = np.empty_like(d)
+    acc[0] = c[0]
+    a = np.empty(m, dtype=d.dtype)
     for i in range(1, n):
-        prev = acc[i - 1]
-        a = torch.minimum(prev, torch.cat([inf, prev[:-1]]))  # min(D[i-1,t], D[i-1,t-1])
-        c = torch.cumsum(d[i], 0)
-        c_before = torch.cat([torch.zeros(1, dtype=d.dtype), c[:-1]])
-        acc[i] = c + torch.cummin(a - c_before, 0).values
-    path = _dtw_backtrack(acc.numpy())
-    path_t = torch.as_tensor(path, dtype=torch.long)
-    # The proposal's C: among the path's cells of each t', the most similar reference frame.
-    d_path = d[path_t[:, 0], path_t[:, 1]]
-    choice = torch.empty(n, dtype=torch.long)
-    best = torch.full((n,), math.inf, dtype=d.dtype)
-    for (i, j), v in zip(path, d_path.tolist(), strict=True):
-        if v < best[i]:
-            best[i] = v
-            choice[i] = j
-    return DTWResult(path_t, float(acc[-1, -1]), choice)
+        prev, row, ci = acc[i - 1], acc[i], c[i]
+        a[0] = prev[0]
+        np.minimum(prev[1:], prev[:-1], out=a[1:])  # A[t] = min(D[i-1, t], D[i-1, t-1])
+        np.subtract(a[1:], ci[:-1], out=a[1:])  # A[s] - c[i, s-1]
+        np.minimum.accumulate(a, out=row)
+        row += ci  # D[i, t] = c[i, t] + min_{s <= t} (A[s] - c[i, s-1])
+    path = np.asarray(_dtw_backtrack(acc), dtype=np.int64)
+    # The proposal's C: among the path's cells of each t', the most similar reference frame
+    # (path rows are non-decreasing; lexsort puts each row's cheapest cell first).
+    d_path = d[path[:, 0], path[:, 1]]
+    order = np.lexsort((d_path, path[:, 0]))
+    _, first = np.unique(path[order, 0], return_index=True)
+    choice = torch.from_numpy(path[order[first], 1].copy())
+    return DTWResult(torch.from_numpy(path), float(acc[-1, -1]), choice)
 
 
 def _dtw_backtrack(acc: np.ndarray) -> list[tuple[int, int]]:

@@ -124,7 +124,9 @@ def _check_feasible(score: Tensor) -> None:
         )
 
 
-def chain_map(unary: Tensor, factor: PairwiseFactor, use_fused: bool = True) -> InferenceResult:
+def chain_map(
+    unary: Tensor, factor: PairwiseFactor, use_fused: bool = True, overwrite: bool = False
+) -> InferenceResult:
     """Viterbi: the MAP assignment of a chain by max-product and backtracking.
 
     Args:
@@ -132,6 +134,8 @@ def chain_map(unary: Tensor, factor: PairwiseFactor, use_fused: bool = True) -> 
         factor: the pairwise factor on every edge ``(t, t + 1)``.
         use_fused: let a factor that offers a fused ``viterbi(unary)`` kernel run the whole
             sweep (:meth:`pgm.MonotoneFactor.viterbi`); ``False`` forces the generic path.
+        overwrite: allow a fused kernel to use ``unary`` as its work buffer (saves a copy
+            of a possibly very large tensor; ``unary`` is garbage afterwards).
 
     Returns:
         :class:`InferenceResult` with ``log_partition`` = MAP score (B,) and ``assignment``
@@ -144,7 +148,7 @@ def chain_map(unary: Tensor, factor: PairwiseFactor, use_fused: bool = True) -> 
     unary = _check_chain(unary, factor)
     b, n, _k = unary.shape
     fused = getattr(factor, "viterbi", None)
-    fused_result = fused(unary) if fused is not None and use_fused else None
+    fused_result = fused(unary, overwrite=overwrite) if fused is not None and use_fused else None
     if fused_result is not None:
         score, states = fused_result
         _check_feasible(score)

@@ -169,3 +169,34 @@ def test_chain_input_errors():
         MonotoneFactor(0)
     with pytest.raises(ValueError, match=r"step_log_potential must have shape \(3,\)"):
         MonotoneFactor(2, torch.zeros(2))
+
+
+@pytest.mark.parametrize(("s", "k"), [(1, 9), (2, 9), (3, 9), (8, 9), (9, 9), (12, 5)])
+def test_fused_viterbi_breaks_ties_like_the_generic_path(s, k):
+    """All-equal potentials: every path ties, so both paths must apply the same rule."""
+    unary = torch.zeros(2, 7, k)
+    unary[1, :, 0] = -1.0
+    fused = chain_map(unary, MonotoneFactor(s))
+    generic = chain_map(unary, MonotoneFactor(s), use_fused=False)
+    assert torch.equal(fused.assignment, generic.assignment)
+    torch.testing.assert_close(fused.log_partition, generic.log_partition)
+
+
+def test_fused_viterbi_overwrite_uses_the_buffer():
+    unary = -torch.rand(1, 50, 30)
+    keep = unary.clone()
+    a = chain_map(unary, MonotoneFactor(3))
+    assert torch.equal(unary, keep)
+    b = chain_map(unary, MonotoneFactor(3), overwrite=True)
+    assert torch.equal(a.assignment, b.assignment)
+
+
+def test_banded_fused_viterbi_breaks_ties_like_the_generic_path():
+    offsets = torch.tensor([0, 0, 2, 3, 3, 7, 9])
+    unary = torch.zeros(2, 7, 5)
+    unary[1, :, 1] = -1.0
+    factor = BandedMonotoneFactor(3, offsets)
+    fused = chain_map(unary, factor)
+    generic = chain_map(unary, factor, use_fused=False)
+    assert torch.equal(fused.assignment, generic.assignment)
+    torch.testing.assert_close(fused.log_partition, generic.log_partition)
