@@ -4,14 +4,18 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# This machine keeps a CPU wheel of torch in /opt/wheels; use it when present (elsewhere,
+# install the torch build you want first: see README, "Installing torch").
+WHEELS := $(firstword $(wildcard /opt/wheels))
+PIP_INSTALL := $(BIN)/python -m pip install -q $(if $(WHEELS),--find-links $(WHEELS),)
 
 .PHONY: demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(PIP_INSTALL) --upgrade pip
+	$(PIP_INSTALL) torch==2.13.0
+	$(PIP_INSTALL) -e '.[test]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -41,8 +41,10 @@ def main() -> None:
     parser.add_argument("--max-step", type=int, default=10)
     args = parser.parse_args()
 
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"threads {torch.get_num_threads()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"threads {torch.get_num_threads()}"
+    )
     rng = np.random.default_rng(0)
     rows = []
     for n, m in [(1000, 5000), (2000, 10000)]:
@@ -51,9 +53,13 @@ def main() -> None:
         cost32 = torch.from_numpy(cost64).float()
         cells = n * m
         entry = {"size": f"{n} x {m}"}
-        entry["chain f32"] = cells / best_time(lambda c=cost32: chain_align(c, args.max_step), args.repeats)
+        entry["chain f32"] = cells / best_time(
+            lambda c=cost32: chain_align(c, args.max_step), args.repeats
+        )
         cost64_t = torch.from_numpy(cost64)
-        entry["chain f64"] = cells / best_time(lambda c=cost64_t: chain_align(c, args.max_step), args.repeats)
+        entry["chain f64"] = cells / best_time(
+            lambda c=cost64_t: chain_align(c, args.max_step), args.repeats
+        )
         entry["dtw"] = cells / best_time(lambda c=cost64_t: dtw(c), args.repeats)
         if not args.skip_anchors:
             from dtaidistance import dtw as dtai
@@ -77,9 +83,11 @@ def main() -> None:
         print("| " + " | ".join([r["size"]] + [f"{r[c] / 1e6:.0f}" for c in cols[1:]]) + " |")
     if not args.skip_anchors:
         for r in rows:
-            print(f"{r['size']}: chain f32 / dtaidistance = {r['chain f32'] / r['dtaidistance']:.2f}x, "
-                  f"dtw / dtaidistance = {r['dtw'] / r['dtaidistance']:.2f}x, "
-                  f"chain f32 / tslearn = {r['chain f32'] / r['tslearn']:.2f}x")
+            print(
+                f"{r['size']}: chain f32 / dtaidistance = {r['chain f32'] / r['dtaidistance']:.2f}x, "
+                f"dtw / dtaidistance = {r['dtw'] / r['dtaidistance']:.2f}x, "
+                f"chain f32 / tslearn = {r['chain f32'] / r['tslearn']:.2f}x"
+            )
 
     # Coarse-to-fine: 7,500 video frames (25 fps, 5 min) against 36,000 reference frames
     # (120 Hz, 5 min), 16-D features, a smooth non-linear warp of average slope 4.8.
@@ -92,11 +100,15 @@ def main() -> None:
     true = ((u + 0.03 * torch.sin(6 * math.pi * u)) * (num_ref - 1)).round().long()
     video = ref[true] + 0.02 * torch.randn(num_video, 16, generator=g)
     fn = sequence_cost_fn(video, ref)
-    seconds = best_time(lambda: coarse_to_fine_align(fn, num_video, num_ref, args.max_step), args.repeats)
+    seconds = best_time(
+        lambda: coarse_to_fine_align(fn, num_video, num_ref, args.max_step), args.repeats
+    )
     path = coarse_to_fine_align(fn, num_video, num_ref, args.max_step).path[0]
     err = (path - true).abs().float().mean().item()
-    print(f"\ncoarse-to-fine 7,500 x 36,000 (S={args.max_step}): {seconds:.2f} s "
-          f"(target < 2 s), mean |C - C_true| = {err:.2f} reference frames")
+    print(
+        f"\ncoarse-to-fine 7,500 x 36,000 (S={args.max_step}): {seconds:.2f} s "
+        f"(target < 2 s), mean |C - C_true| = {err:.2f} reference frames"
+    )
 
 
 if __name__ == "__main__":

@@ -147,8 +147,8 @@ def robust_cost(cost: Tensor, threshold: float | None = None, mode: str = "trunc
 
     Args:
         cost: ``(..., T', T)`` non-negative costs.
-        threshold: the cost scale tau; default: the median over t' of each row's minimum cost
-            times 4 (a row whose best match is worse than that is treated as an outlier).
+        threshold: the cost scale tau; default: twice the median over t' of each row's
+            minimum cost (a pair worse than that is treated as an outlier).
         mode: ``"truncate"`` -> ``min(d, tau)``; ``"saturate"`` -> ``tau * (1 - exp(-d / tau))``
             (smooth, same limits).
 
@@ -157,7 +157,7 @@ def robust_cost(cost: Tensor, threshold: float | None = None, mode: str = "trunc
     """
     if threshold is None:
         row_min = cost.amin(-1)
-        threshold_t = 4.0 * row_min.median(-1, keepdim=True).values.unsqueeze(-1)
+        threshold_t = 2.0 * row_min.median(-1, keepdim=True).values.unsqueeze(-1)
         threshold_t = threshold_t.clamp_min(torch.finfo(cost.dtype).tiny)
     else:
         if not (threshold > 0 and math.isfinite(threshold)):

@@ -186,7 +186,8 @@ def test_robust_chain_confines_the_error_to_the_replaced_segment(seed):
     outside[40:51] = False
     s = 12
     slope = (num_ref - 1) / 99
-    robust = robust_cost(cost)
+    # tau = 4 x the median best-match cost; slope prior weight 5 % of tau per unit deviation
+    robust = robust_cost(cost, threshold=4.0 * float(cost.amin(-1).median()))
     prior = slope_step_cost(s, slope, 0.05 * float(robust.max())).double()
     path = chain_align(robust, s, fix_start=True, fix_end=True, step_cost=prior).path[0]
     err = (path - true).abs().double()
