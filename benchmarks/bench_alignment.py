@@ -24,19 +24,23 @@ import torch
 from motion.alignment import chain_align, coarse_to_fine_align, dtw, sequence_cost_fn
 
 
-def best_time(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
+def best_times(fns: dict, repeats: int) -> dict[str, float]:
+    """Best wall time of each function; rounds are interleaved so that every contender sees
+    the same machine state (this machine's speed drifts by tens of percent over minutes)."""
+    for fn in fns.values():
+        fn()  # warm-up
+    best = dict.fromkeys(fns, float("inf"))
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return best
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-anchors", action="store_true", help="skip dtaidistance/tslearn")
     parser.add_argument("--max-step", type=int, default=10)
     args = parser.parse_args()
@@ -52,15 +56,12 @@ def main() -> None:
         cost64 = (x[:, None] - y[None]) ** 2
         cost32 = torch.from_numpy(cost64).float()
         cells = n * m
-        entry = {"size": f"{n} x {m}"}
-        entry["chain f32"] = cells / best_time(
-            lambda c=cost32: chain_align(c, args.max_step), args.repeats
-        )
         cost64_t = torch.from_numpy(cost64)
-        entry["chain f64"] = cells / best_time(
-            lambda c=cost64_t: chain_align(c, args.max_step), args.repeats
-        )
-        entry["dtw"] = cells / best_time(lambda c=cost64_t: dtw(c), args.repeats)
+        fns = {
+            "chain f32": lambda c=cost32: chain_align(c, args.max_step),
+            "chain f64": lambda c=cost64_t: chain_align(c, args.max_step),
+            "dtw": lambda c=cost64_t: dtw(c),
+        }
         if not args.skip_anchors:
             from dtaidistance import dtw as dtai
             from tslearn.metrics import dtw_path_from_metric
@@ -69,10 +70,10 @@ def main() -> None:
                 _, paths = dtai.warping_paths_fast(x, y)
                 return dtai.best_path(paths)
 
-            entry["dtaidistance"] = cells / best_time(dtai_path, args.repeats)
-            entry["tslearn"] = cells / best_time(
-                lambda c=cost64: dtw_path_from_metric(c, metric="precomputed"), args.repeats
-            )
+            fns["dtaidistance"] = dtai_path
+            fns["tslearn"] = lambda c=cost64: dtw_path_from_metric(c, metric="precomputed")
+        entry = {"size": f"{n} x {m}"}
+        entry.update({k: cells / v for k, v in best_times(fns, args.repeats).items()})
         rows.append(entry)
 
     cols = list(rows[0].keys())
@@ -100,9 +101,9 @@ def main() -> None:
     true = ((u + 0.03 * torch.sin(6 * math.pi * u)) * (num_ref - 1)).round().long()
     video = ref[true] + 0.02 * torch.randn(num_video, 16, generator=g)
     fn = sequence_cost_fn(video, ref)
-    seconds = best_time(
-        lambda: coarse_to_fine_align(fn, num_video, num_ref, args.max_step), args.repeats
-    )
+    seconds = best_times(
+        {"c2f": lambda: coarse_to_fine_align(fn, num_video, num_ref, args.max_step)}, args.repeats
+    )["c2f"]
     path = coarse_to_fine_align(fn, num_video, num_ref, args.max_step).path[0]
     err = (path - true).abs().float().mean().item()
     print(
