@@ -1,0 +1,258 @@
+"""Factors over continuous supports: samplers for proposals, annealing, observation factors.
+
+Pairwise factors for particle BP extend :class:`pgm.factors.PairwiseFactor` with a
+*conditional sampler*: given particles of one end, draw the other end from
+``psi(x_source, .)`` normalised as a density, and evaluate that density (the proposal density
+``q`` needs it). Annealed factors scale their spread by a :class:`~pgm.schedules.Schedule`
+that the engine advances with :meth:`set_iteration`.
+
+Observation (unary) factors see a node group's particles *and the current estimates of every
+node*, so an occlusion-aware factor can render a part together with the rest of the body.
+
+Shapes: ``B`` batch, ``E`` edges, ``N`` nodes of a unary group, ``V`` all nodes, ``K`` / ``M``
+particles, ``D`` state width.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from pgm.factors import EdgeIndex, PairwiseFactor
+from pgm.rotations import angle_from_dot, qconj, qexp, qmul, qnormalize, qrotate
+from pgm.schedules import Constant, Schedule
+from pgm.spaces import so3_log_kernel
+
+__all__ = [
+    "ContinuousPairwise",
+    "GaussianUnary",
+    "LinearGaussian",
+    "RigidConnection",
+    "UnaryFactor",
+]
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+class ContinuousPairwise(PairwiseFactor):
+    """A pairwise factor over particle values that can sample either end given the other.
+
+    Subclasses implement :meth:`log_potential` (the table over two particle sets) and, to take
+    part in proposals, :meth:`sample_target` and :meth:`log_target_density`.
+    """
+
+    can_sample = True
+
+    def __init__(self, schedule: Schedule | None = None):
+        self.schedule = schedule or Constant()
+        self.iteration = 0
+
+    def set_iteration(self, iteration: int) -> None:
+        """Advance the annealing schedule (called by the engine before each iteration)."""
+        self.iteration = iteration
+
+    @property
+    def anneal(self) -> float:
+        """Current spread multiplier ``schedule(iteration)``."""
+        return self.schedule(self.iteration)
+
+    def sample_target(
+        self, x_source: Tensor, edges: EdgeIndex, forward: bool, generator: torch.Generator | None
+    ) -> Tensor:
+        """Draw ``x_target ~ psi(x_source, .)`` (normalised). Shapes: (B, E, M, D) -> (B, E, M, D_t)."""
+        raise NotImplementedError(f"{type(self).__name__} has no conditional sampler")
+
+    def log_target_density(
+        self, x_target: Tensor, x_source: Tensor, edges: EdgeIndex, forward: bool
+    ) -> Tensor:
+        """Log density of :meth:`sample_target`. Shapes: (B, E, K, D_t), (B, E, M, D_s) -> (B, E, K, M)."""
+        raise NotImplementedError(f"{type(self).__name__} has no conditional density")
+
+
+class LinearGaussian(ContinuousPairwise):
+    """``psi(x_a, x_b) = N(x_b; gain * x_a + offset, (anneal * std)^2 I)`` on R^dim.
+
+    Args:
+        dim: state width of both ends (values beyond it are ignored).
+        gain: non-zero scalar (so that both directions can be sampled).
+        offset: ``(dim,)`` or per edge ``(E, dim)``.
+        std: scalar or ``(dim,)`` standard deviation.
+        schedule: annealing multiplier of ``std``.
+    """
+
+    def __init__(self, dim: int, gain: float = 1.0, offset=0.0, std=1.0, schedule=None):
+        super().__init__(schedule)
+        if not isinstance(dim, int) or dim < 1:
+            raise ValueError(f"dim must be an int >= 1; got {dim!r}")
+        if not (math.isfinite(gain) and gain != 0):
+            raise ValueError(f"gain must be finite and non-zero; got {gain}")
+        self.dim, self.gain = dim, float(gain)
+        self.offset = torch.as_tensor(offset, dtype=torch.get_default_dtype())
+        if self.offset.dim() == 2:
+            self.num_edges = self.offset.shape[0]
+        std = torch.as_tensor(std, dtype=torch.get_default_dtype())
+        self.std = std.expand(dim) if std.dim() == 0 else std
+        if self.std.shape != (dim,) or not (self.std > 0).all():
+            raise ValueError(f"std must be > 0, a scalar or shape ({dim},); got {tuple(std.shape)}")
+
+    def _offset(self, edges: EdgeIndex, like: Tensor) -> Tensor:
+        off = self.offset.to(like)
+        if off.dim() == 2:
+            return off[edges][None, :, None, :]  # (1, E, 1, dim)
+        return off
+
+    def _log_gauss(self, diff: Tensor, std: Tensor) -> Tensor:
+        return (-0.5 * (diff / std).square() - torch.log(std) - 0.5 * _LOG_2PI).sum(-1)
+
+    def log_potential(self, edges, xa, xb, num_states):
+        xa, xb = xa[..., : self.dim], xb[..., : self.dim]
+        std = self.std.to(xa) * self.anneal
+        mean_b = self.gain * xa + self._offset(edges, xa)  # (B, E, K, dim)
+        return self._log_gauss(xb.unsqueeze(-3) - mean_b.unsqueeze(-2), std)  # [i, j]
+
+    def sample_target(self, x_source, edges, forward, generator):
+        x = x_source[..., : self.dim]
+        std = self.std.to(x) * self.anneal
+        noise = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+        if forward:
+            return self.gain * x + self._offset(edges, x) + std * noise
+        # x_a | x_b ~ N((x_b - offset) / gain, (std / |gain|)^2)
+        return (x - self._offset(edges, x)) / self.gain + std / abs(self.gain) * noise
+
+    def log_target_density(self, x_target, x_source, edges, forward):
+        xt, xs = x_target[..., : self.dim], x_source[..., : self.dim]
+        std = self.std.to(xt) * self.anneal
+        if forward:
+            mean = self.gain * xs + self._offset(edges, xs)
+            return self._log_gauss(xt.unsqueeze(-2) - mean.unsqueeze(-3), std)
+        mean = (xs - self._offset(edges, xs)) / self.gain
+        return self._log_gauss(xt.unsqueeze(-2) - mean.unsqueeze(-3), std / abs(self.gain))
+
+
+class RigidConnection(ContinuousPairwise):
+    """Connection of two rigid parts (SE3 values) at a shared joint, as in the proposal's
+    ``psi_ij = N(T(x_i) - p_j; 0, Lambda^n)``, with an optional relative-rotation prior.
+
+    ``psi(x_a, x_b) = N(p_a + R_a o_a - (p_b + R_b o_b); 0, s_p^2 I) * k(R_a r, R_b; s_r)``:
+    the joint seen from part a (point ``o_a`` in a's frame) meets the joint seen from part b
+    (``o_b`` in b's frame); ``k`` is the SO(3) kernel of :func:`pgm.spaces.so3_log_kernel`
+    around the mean relative rotation ``r``. Both spreads are multiplied by the schedule.
+
+    Args:
+        offset_a, offset_b: ``(3,)`` or ``(E, 3)`` joint position in each part's frame (metres).
+        pos_std: metres. rot_std: radians (``None``: rotation unconstrained -- then this
+            factor cannot sample, as the conditional is improper).
+        rel_rot: ``(4,)`` or ``(E, 4)`` mean relative rotation ``R_a^T R_b`` (default identity).
+    """
+
+    def __init__(
+        self,
+        offset_a,
+        offset_b,
+        pos_std: float,
+        rot_std: float | None = None,
+        rel_rot=None,
+        schedule=None,
+    ):
+        super().__init__(schedule)
+        dt = torch.get_default_dtype()
+        self.offset_a = torch.as_tensor(offset_a, dtype=dt)
+        self.offset_b = torch.as_tensor(offset_b, dtype=dt)
+        self.rel_rot = torch.as_tensor([1.0, 0, 0, 0] if rel_rot is None else rel_rot, dtype=dt)
+        for name, t, w in (
+            ("offset_a", self.offset_a, 3),
+            ("offset_b", self.offset_b, 3),
+            ("rel_rot", self.rel_rot, 4),
+        ):
+            if t.shape[-1] != w or t.dim() not in (1, 2):
+                raise ValueError(f"{name} must have shape ({w},) or (E, {w}); got {tuple(t.shape)}")
+            if t.dim() == 2:
+                if self.num_edges not in (None, t.shape[0]):
+                    raise ValueError(
+                        f"{name} has {t.shape[0]} rows; other parameters have {self.num_edges}"
+                    )
+                self.num_edges = t.shape[0]
+        if not pos_std > 0:
+            raise ValueError(f"pos_std must be > 0; got {pos_std}")
+        if rot_std is not None and not rot_std > 0:
+            raise ValueError(f"rot_std must be > 0 or None; got {rot_std}")
+        self.pos_std, self.rot_std = float(pos_std), rot_std
+        self.can_sample = rot_std is not None
+
+    def _param(self, t: Tensor, edges: EdgeIndex, like: Tensor) -> Tensor:
+        t = t.to(like)
+        return t[edges][None, :, None, :] if t.dim() == 2 else t
+
+    def _joint(self, x: Tensor, offset: Tensor) -> Tensor:
+        return x[..., :3] + qrotate(x[..., 3:7], offset.expand(*x.shape[:-1], 3))
+
+    def log_potential(self, edges, xa, xb, num_states):
+        ja = self._joint(xa, self._param(self.offset_a, edges, xa))  # (B, E, K, 3)
+        jb = self._joint(xb, self._param(self.offset_b, edges, xb))
+        s_p = self.pos_std * self.anneal
+        d2 = torch.cdist(ja, jb).square()  # (B, E, K, K) [i, j]
+        out = -0.5 * d2 / s_p**2 - 3 * math.log(s_p) - 1.5 * _LOG_2PI
+        if self.rot_std is not None:
+            qa = qmul(xa[..., 3:7], self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
+            dot = qa @ xb[..., 3:7].transpose(-1, -2)
+            out = out + so3_log_kernel(angle_from_dot(dot), self.rot_std * self.anneal)
+        return out
+
+    def sample_target(self, x_source, edges, forward, generator):
+        s_p, s_r = self.pos_std * self.anneal, self.rot_std * self.anneal
+        lead = x_source.shape[:-1]
+        rel = self._param(self.rel_rot, edges, x_source).expand(*lead, 4)
+        er = torch.randn(
+            (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
+        )
+        ep = torch.randn(
+            (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
+        )
+        q_s = x_source[..., 3:7]
+        if forward:  # b given a: R_b = exp(e) R_a r;  p_b = joint_a - R_b o_b + noise
+            q_t = qnormalize(qmul(qexp(er * s_r), qmul(q_s, rel)))
+            joint = self._joint(x_source, self._param(self.offset_a, edges, x_source))
+            o_t = self._param(self.offset_b, edges, x_source)
+        else:  # a given b: R_a = exp(e) R_b r^-1
+            q_t = qnormalize(qmul(qexp(er * s_r), qmul(q_s, qconj(rel))))
+            joint = self._joint(x_source, self._param(self.offset_b, edges, x_source))
+            o_t = self._param(self.offset_a, edges, x_source)
+        p_t = joint - qrotate(q_t, o_t.expand(*lead, 3)) + s_p * ep
+        return torch.cat([p_t, q_t], -1)
+
+    def log_target_density(self, x_target, x_source, edges, forward):
+        # psi is already normalised in the target: position Gaussian given the rotation, and
+        # the SO(3) kernel in the rotation.
+        if forward:
+            return self.log_potential(edges, x_source, x_target, x_source.shape[-2]).transpose(
+                -1, -2
+            )
+        return self.log_potential(edges, x_target, x_source, x_source.shape[-2])
+
+
+class UnaryFactor:
+    """Observation factor ``phi_j(x_j, X_-j, z_j)`` over a group of nodes.
+
+    Subclasses implement :meth:`log_potential`. The engine calls it once per iteration for
+    the whole group, with the current estimates of all nodes (from the previous iteration)
+    so that a factor may score a node's particles together with the rest of the model.
+    """
+
+    def log_potential(self, x: Tensor, nodes: Tensor, estimates: Tensor) -> Tensor:
+        """Shapes: x (B, N, K, D) particles of ``nodes`` (N,), estimates (B, V, D) -> (B, N, K)."""
+        raise NotImplementedError
+
+
+class GaussianUnary(UnaryFactor):
+    """``phi(x) = N(x[:dim]; mean, std^2 I)`` per node. mean: ``(N, dim)`` or ``(B, N, dim)``."""
+
+    def __init__(self, mean: Tensor, std):
+        self.mean = mean if mean.dim() == 3 else mean.unsqueeze(0)
+        self.std = torch.as_tensor(std, dtype=mean.dtype)
+        self.dim = self.mean.shape[-1]
+
+    def log_potential(self, x, nodes, estimates):
+        z = (x[..., : self.dim] - self.mean.to(x).unsqueeze(-2)) / self.std.to(x)
+        return -0.5 * z.square().sum(-1)

@@ -1,0 +1,494 @@
+"""Particle belief propagation (the proposal's Eqs. 28-35) on the exact engine.
+
+With its particles fixed, a continuous node is a discrete node whose support is its K
+particles with log-measure ``-log q(s)``; a pairwise factor evaluated on two particle sets is
+a ``(B, E, K, K)`` table. One iteration of particle BP is therefore:
+
+1. **Proposal** (iterations after the first): for every continuous node j, K new particles
+   from a mixture of its own previous marginal (resample, then perturb with the state
+   space's kernel) and each neighbour's marginal pushed through ``psi_ij`` (resample
+   ``x_i``, then ``x_j ~ psi_ij(x_i, .)``); ``q_j(s)``, the mixture's density at each new
+   particle, is kept. ``proposal="own"`` uses the node's own marginal only (BPMC-style).
+2. **Messages** (Eq. 33) and **marginals** (Eq. 35): exact BP on the particle-discretised
+   graph -- :func:`pgm.tree.tree_inference` on a tree, :func:`pgm.loopy.loopy_bp` otherwise --
+   with ``unary = log phi_j(s_j, X_-j, z_j)`` and ``log_measure = -log q_j(s_j)`` (0 under
+   max-product, which maximises over particle locations and must not favour rare ones). Messages
+   into a node exclude the target's own message (prefix/suffix products), which is Eq. 33's
+   division by ``omega_ji``; the marginal is ``phi * prod omega / q``, normalised.
+3. **Estimates**: weighted mean on the manifold and the best particle per node.
+
+Sum-product or max-product (particle max-product) is the semiring's choice. Pairwise
+factors anneal through their :class:`~pgm.schedules.Schedule`; ``restarts`` repeats the whole
+iteration sequence from the current particles (the proposal runs 6 iterations twice).
+
+Shapes: ``B`` batch, ``V`` nodes, ``K`` particles (discrete nodes: states, padded to K),
+``D`` the widest state. Every random draw uses the given ``torch.Generator``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from pgm.continuous import UnaryFactor
+from pgm.factors import PairwiseFactor
+from pgm.graph import FactorGraph, GraphError, NotATreeError
+from pgm.loopy import loopy_bp
+from pgm.schedules import Constant, Schedule
+from pgm.semiring import LogSemiring, Semiring
+from pgm.spaces import StateSpace
+from pgm.tree import tree_inference
+
+__all__ = ["IterationStats", "ParticleGraph", "ParticleResult", "particle_bp"]
+
+
+@dataclass
+class IterationStats:
+    """Diagnostics of one particle-BP iteration.
+
+    Attributes:
+        restart, iteration: position in the schedule.
+        ess: ``(B, V)`` effective sample size ``1 / sum pi^2`` of each node's marginal.
+        log_weight_range: ``(B, V)`` max minus min of the finite log-weights.
+        estimate_change: max over nodes of the change of the mean estimate since the last
+            iteration (in the state space's distance); ``nan`` at the first.
+        message_change: last message change of loopy BP inside the iteration (``None`` on trees).
+    """
+
+    restart: int
+    iteration: int
+    ess: Tensor
+    log_weight_range: Tensor
+    estimate_change: float
+    message_change: float | None
+
+
+@dataclass
+class ParticleResult:
+    """Output of :func:`particle_bp`.
+
+    Attributes:
+        particles: ``(B, V, K, D)`` final particles (discrete nodes: their states).
+        log_weights: ``(B, V, K)`` normalised log marginal weights (``-inf`` on padding).
+        mean: ``(B, V, D)`` weighted mean on each node's manifold.
+        best: ``(B, V, D)`` highest-weight particle.
+        history: one :class:`IterationStats` per iteration.
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+    mean: Tensor
+    best: Tensor
+    history: list[IterationStats] = field(default_factory=list)
+
+
+@dataclass
+class _Directed:
+    """One direction of one factor group's edges, in the proposal's bookkeeping."""
+
+    group: int
+    forward: bool
+    source: Tensor  # (E,) nodes
+    target: Tensor  # (E,) nodes
+    slot: Tensor  # (E,) 1 + position among the target's incoming components
+
+
+class ParticleGraph:
+    """A factor graph over continuous (and discrete) nodes, for :func:`particle_bp`.
+
+    Args:
+        num_nodes: V.
+        spaces: ``[(space, nodes), ...]`` -- every node in exactly one group.
+        pairwise: ``[(edges (E, 2), factor), ...]`` as in :class:`~pgm.graph.FactorGraph`.
+        unary: ``[(nodes (N,), factor), ...]`` observation factors (a node may have several).
+    """
+
+    def __init__(
+        self,
+        num_nodes: int,
+        spaces: Sequence[tuple[StateSpace, Tensor]],
+        pairwise: Sequence[tuple[Tensor, PairwiseFactor]] = (),
+        unary: Sequence[tuple[Tensor, UnaryFactor]] = (),
+    ):
+        if not isinstance(num_nodes, int) or num_nodes < 1:
+            raise GraphError(f"num_nodes must be an int >= 1; got {num_nodes!r}")
+        self.num_nodes = num_nodes
+        owner = torch.full((num_nodes,), -1, dtype=torch.long)
+        self.spaces: list[tuple[StateSpace, Tensor]] = []
+        for gi, (space, nodes) in enumerate(spaces):
+            if not isinstance(space, StateSpace):
+                raise GraphError(f"spaces[{gi}] must pair a StateSpace with nodes; got {space!r}")
+            nodes = torch.as_tensor(nodes, dtype=torch.long).reshape(-1)
+            if nodes.numel() and (nodes.min() < 0 or nodes.max() >= num_nodes):
+                raise GraphError(f"spaces[{gi}] names nodes outside [0, {num_nodes})")
+            if (owner[nodes] >= 0).any() or len(set(nodes.tolist())) != len(nodes):
+                raise GraphError(f"spaces[{gi}] names a node that already has a space")
+            owner[nodes] = gi
+            self.spaces.append((space, nodes))
+        if (owner < 0).any():
+            missing = (owner < 0).nonzero().flatten().tolist()
+            raise GraphError(f"nodes {missing[:10]} have no state space")
+        self.space_of = owner
+        self.pairwise = list(pairwise)
+        self.unary = []
+        for ui, (nodes, factor) in enumerate(unary):
+            nodes = torch.as_tensor(nodes, dtype=torch.long).reshape(-1)
+            if nodes.numel() and (nodes.min() < 0 or nodes.max() >= num_nodes):
+                raise GraphError(f"unary[{ui}] names nodes outside [0, {num_nodes})")
+            if not isinstance(factor, UnaryFactor):
+                raise GraphError(
+                    f"unary[{ui}] factor must be a UnaryFactor; got {type(factor).__name__}"
+                )
+            self.unary.append((nodes, factor))
+        self.max_dim = max(space.dim for space, _ in self.spaces)
+        self.discrete_states = max(
+            [getattr(s, "num_states", 0) for s, _ in self.spaces if s.discrete] + [0]
+        )
+        # Validate the wiring once (shapes, ranges, factor edge counts).
+        FactorGraph(torch.zeros(1, num_nodes, 1), self.pairwise)
+
+    def directed_edges(self) -> tuple[list[_Directed], int]:
+        """Every factor group in both directions, with the slot each edge takes among its
+        target's proposal components (slot 0 is the node's own marginal)."""
+        count = [0] * self.num_nodes
+        out = []
+        for g, (edges, factor) in enumerate(self.pairwise):
+            edges = torch.as_tensor(edges).long()
+            for forward in (True, False):
+                src, dst = (edges[:, 0], edges[:, 1]) if forward else (edges[:, 1], edges[:, 0])
+                slots = []
+                for t in dst.tolist():
+                    count[t] += 1
+                    slots.append(count[t])
+                out.append(_Directed(g, forward, src, dst, torch.tensor(slots, dtype=torch.long)))
+        return out, max(count + [0])
+
+
+def _stats_range(log_w: Tensor) -> Tensor:
+    finite = torch.isfinite(log_w)
+    hi = torch.where(finite, log_w, -math.inf).amax(-1)
+    lo = torch.where(finite, log_w, math.inf).amin(-1)
+    return hi - lo
+
+
+def particle_bp(
+    graph: ParticleGraph,
+    initial: Tensor,
+    *,
+    iterations: int = 6,
+    restarts: int = 1,
+    generator: torch.Generator | None = None,
+    semiring: Semiring | None = None,
+    proposal: str = "mixture",
+    self_weight: float = 0.5,
+    kernel_scale: float | Sequence | dict | None = None,
+    kernel_schedule: Schedule | None = None,
+    initial_log_density: Tensor | None = None,
+    loopy_iterations: int = 30,
+    loopy_damping: float = 0.0,
+    callback: Callable[[IterationStats], None] | None = None,
+) -> ParticleResult:
+    """Run particle belief propagation.
+
+    Args:
+        graph: a :class:`ParticleGraph`.
+        initial: ``(B, V, K, D)`` initial particles (values of discrete nodes are ignored);
+            ``D`` is the widest space's width; narrower spaces use the leading columns.
+        iterations: weighting passes per restart (the first restart's first pass weights the
+            initial particles; every other pass resamples first).
+        restarts: how often the iteration sequence (and its annealing schedules) is run.
+        generator: source of every random draw.
+        semiring: :class:`~pgm.semiring.LogSemiring` (default, marginals) or
+            :class:`~pgm.semiring.MaxSemiring` (particle max-product).
+        proposal: ``"mixture"`` (own marginal and neighbours' pushed through ``psi``) or
+            ``"own"`` (own marginal only, BPMC-style).
+        self_weight: mixture weight of the own-marginal component (``"mixture"`` only).
+        kernel_scale: perturbation kernel per space group (a float for all, a sequence in
+            the order of ``graph.spaces``, or ``{group index: scale}``); required for
+            continuous spaces.
+        kernel_schedule: multiplier of ``kernel_scale`` per iteration (default constant 1).
+        initial_log_density: ``(B, V, K)`` log density the initial particles were drawn
+            from (default: uniform, i.e. the initial particles are taken as a grid).
+        loopy_iterations, loopy_damping: inner loopy-BP settings when the graph has cycles.
+        callback: called with each iteration's :class:`IterationStats`.
+
+    Returns:
+        :class:`ParticleResult`.
+
+    Raises:
+        ValueError / GraphError: mismatched dimensions, non-finite particles or weights, an
+            observation factor returning the wrong shape or NaN, a bad option.
+    """
+    semiring = semiring or LogSemiring()
+    if proposal not in ("mixture", "own"):
+        raise ValueError(f"proposal must be 'mixture' or 'own'; got {proposal!r}")
+    if not 0.0 <= self_weight <= 1.0:
+        raise ValueError(f"self_weight must be in [0, 1]; got {self_weight}")
+    if iterations < 1 or restarts < 1:
+        raise ValueError(f"iterations and restarts must be >= 1; got {iterations}, {restarts}")
+    if not isinstance(initial, Tensor) or initial.dim() != 4:
+        shape = tuple(initial.shape) if isinstance(initial, Tensor) else type(initial).__name__
+        raise ValueError(f"initial must have shape (B, V, K, D); got {shape}")
+    b, v, k, d = initial.shape
+    if v != graph.num_nodes or d != graph.max_dim:
+        raise ValueError(
+            f"initial must have shape (B, {graph.num_nodes}, K, {graph.max_dim}); got {tuple(initial.shape)}"
+        )
+    if graph.discrete_states > k:
+        raise ValueError(
+            f"K = {k} particles is fewer than the {graph.discrete_states} states of a discrete "
+            "node; use K >= the largest discrete state count"
+        )
+    scales = _kernel_scales(graph, kernel_scale)
+    kernel_schedule = kernel_schedule or Constant()
+    dtype, device = initial.dtype, initial.device
+
+    # Supports: continuous nodes start from `initial`, discrete nodes hold their states.
+    values = initial.clone()
+    log_q = torch.zeros(b, v, k, dtype=dtype, device=device)
+    if initial_log_density is not None:
+        if initial_log_density.shape != (b, v, k):
+            raise ValueError(
+                f"initial_log_density must have shape ({b}, {v}, {k}); got {tuple(initial_log_density.shape)}"
+            )
+        log_q = initial_log_density.to(dtype).clone()
+    for space, nodes in graph.spaces:
+        if space.discrete:
+            n = space.num_states
+            values[:, nodes] = 0.0
+            values[:, nodes, :n, :1] = space.support(dtype).to(device)
+            log_q[:, nodes] = 0.0
+            log_q[:, nodes, n:] = math.inf  # measure -inf: padding
+        else:
+            space.validate(initial[:, nodes][..., : space.dim], "initial particles")
+    directed, max_in = graph.directed_edges()
+    try:
+        _ = FactorGraph(torch.zeros(1, v, 1), graph.pairwise).tree_schedule
+        is_tree = True
+    except NotATreeError:
+        is_tree = False
+
+    log_w = torch.full((b, v, k), -math.log(k), dtype=dtype, device=device)
+    log_w = log_w.masked_fill(torch.isinf(log_q), -math.inf)
+    mean = best = None
+    history: list[IterationStats] = []
+    first = True
+    for restart in range(restarts):
+        for it in range(iterations):
+            for _, factor in graph.pairwise:
+                factor.set_iteration(it)
+            if not first:
+                values, log_q = _propose(
+                    graph,
+                    values,
+                    log_w,
+                    directed,
+                    max_in,
+                    scales,
+                    kernel_schedule(it),
+                    proposal,
+                    self_weight,
+                    generator,
+                )
+            first = False
+            estimates = best if best is not None else _estimate(graph, values, log_w)[0]
+            unary = _unary(graph, values, estimates)
+            # Max-product (particle max-product) maximises the potentials over the particle
+            # locations: the sampling density is no part of the objective, only the support.
+            measure = (
+                -log_q if not semiring.selects else torch.where(torch.isinf(log_q), -math.inf, 0.0)
+            )
+            fg = FactorGraph(unary, graph.pairwise, log_measure=measure.to(dtype), values=values)
+            if is_tree:
+                result = tree_inference(fg, semiring)
+                change = None
+            else:
+                result = loopy_bp(
+                    fg, semiring, max_iters=loopy_iterations, damping=loopy_damping, tol=1e-6
+                )
+                change = result.message_change[-1]
+            log_w = torch.log_softmax(result.log_marginals, -1)
+            if torch.isnan(log_w).any():
+                bad = torch.isnan(log_w).any(-1).nonzero()[0].tolist()
+                raise ValueError(
+                    f"particle weights became NaN at batch {bad[0]}, node {bad[1]} (every "
+                    "particle has zero potential: widen the kernels or the potentials)"
+                )
+            new_mean, new_best = _estimate(graph, values, log_w)
+            est_change = math.nan if mean is None else _max_change(graph, mean, new_mean)
+            mean, best = new_mean, new_best
+            stats = IterationStats(
+                restart,
+                it,
+                1.0 / log_w.exp().square().sum(-1),
+                _stats_range(log_w),
+                est_change,
+                change,
+            )
+            history.append(stats)
+            if callback is not None:
+                callback(stats)
+    return ParticleResult(values, log_w, mean, best, history)
+
+
+def _kernel_scales(graph: ParticleGraph, kernel_scale) -> dict[int, object]:
+    continuous = [g for g, (s, _) in enumerate(graph.spaces) if not s.discrete]
+    if kernel_scale is None:
+        if continuous:
+            raise ValueError("kernel_scale is required for continuous spaces")
+        return {}
+    if isinstance(kernel_scale, dict):
+        scales = dict(kernel_scale)
+    elif isinstance(kernel_scale, (int, float, Tensor)):
+        scales = dict.fromkeys(continuous, kernel_scale)
+    else:
+        if len(kernel_scale) != len(graph.spaces):
+            raise ValueError(
+                f"kernel_scale has {len(kernel_scale)} entries; the graph has {len(graph.spaces)} space groups"
+            )
+        scales = dict(enumerate(kernel_scale))
+    missing = [g for g in continuous if scales.get(g) is None]
+    if missing:
+        raise ValueError(f"kernel_scale missing for space groups {missing}")
+    return scales
+
+
+def _scaled(scale, factor: float):
+    return torch.as_tensor(scale) * factor
+
+
+def _unary(graph: ParticleGraph, values: Tensor, estimates: Tensor) -> Tensor:
+    b, v, k, _ = values.shape
+    total = torch.zeros(b, v, k, dtype=values.dtype, device=values.device)
+    for ui, (nodes, factor) in enumerate(graph.unary):
+        out = factor.log_potential(values[:, nodes], nodes, estimates)
+        expected = (b, len(nodes), k)
+        if not isinstance(out, Tensor) or tuple(out.shape) != expected:
+            got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+            raise ValueError(
+                f"unary[{ui}] {type(factor).__name__}.log_potential returned {got}; expected {expected}"
+            )
+        if torch.isnan(out).any() or torch.isposinf(out).any():
+            raise ValueError(
+                f"unary[{ui}] {type(factor).__name__}.log_potential returned NaN or +inf"
+            )
+        total.index_add_(1, nodes, out.to(total.dtype))
+    return total
+
+
+def _estimate(graph: ParticleGraph, values: Tensor, log_w: Tensor) -> tuple[Tensor, Tensor]:
+    mean = torch.zeros(
+        values.shape[0], values.shape[1], values.shape[3], dtype=values.dtype, device=values.device
+    )
+    idx = log_w.argmax(-1)  # (B, V)
+    best = values.gather(2, idx[:, :, None, None].expand(-1, -1, 1, values.shape[-1])).squeeze(2)
+    for space, nodes in graph.spaces:
+        x = values[:, nodes][..., : space.dim]
+        mean[:, nodes, : space.dim] = space.weighted_mean(x, log_w[:, nodes])
+    return mean, best
+
+
+def _max_change(graph: ParticleGraph, old: Tensor, new: Tensor) -> float:
+    worst = 0.0
+    for space, nodes in graph.spaces:
+        dist = space.distance(old[:, nodes][..., : space.dim], new[:, nodes][..., : space.dim])
+        worst = max(worst, float(dist.max()))
+    return worst
+
+
+def _resample_index(log_w: Tensor, count: int, generator) -> Tensor:
+    """``count`` indices per row drawn from ``softmax(log_w)``. Shapes: (..., K) -> (..., count)."""
+    lead = log_w.shape[:-1]
+    probs = torch.softmax(log_w.reshape(-1, log_w.shape[-1]).double(), -1)
+    idx = torch.multinomial(probs, count, replacement=True, generator=generator)
+    return idx.reshape(*lead, count)
+
+
+def _gather_particles(x: Tensor, idx: Tensor) -> Tensor:
+    """x (..., K, D), idx (..., M) -> (..., M, D)."""
+    return x.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, x.shape[-1]))
+
+
+def _propose(
+    graph, values, log_w, directed, max_in, scales, kernel_mult, proposal, self_weight, generator
+):
+    """New particles for every continuous node and their mixture log density ``log q``."""
+    b, v, k, d = values.shape
+    ncomp = 1 + max_in
+    pool = values.new_zeros(b, v, ncomp, k, d)
+    comp_logq = values.new_full((b, v, ncomp, k), -math.inf)  # filled after sampling
+    weights = values.new_zeros(v, ncomp)
+    continuous = torch.zeros(v, dtype=torch.bool)
+    for space, nodes in graph.spaces:
+        if not space.discrete:
+            continuous[nodes] = True
+
+    # Component 0: own marginal, resampled and perturbed.
+    own_src = _resample_index(log_w, k, generator)  # (B, V, K)
+    for g, (space, nodes) in enumerate(graph.spaces):
+        if space.discrete:
+            continue
+        x = values[:, nodes][..., : space.dim]
+        picked = _gather_particles(x, own_src[:, nodes])
+        pool[:, nodes, 0, :, : space.dim] = space.perturb(
+            picked, _scaled(scales[g], kernel_mult), generator
+        )
+    weights[:, 0] = 1.0
+    # Components 1..: neighbours pushed through psi.
+    usable = []
+    if proposal == "mixture":
+        for de in directed:
+            factor = graph.pairwise[de.group][1]
+            if not getattr(factor, "can_sample", False):
+                continue
+            tgt_ok = continuous[de.target]
+            if not tgt_ok.any():
+                continue
+            src_idx = _resample_index(log_w[:, de.source], k, generator)  # (B, E, K)
+            x_src = _gather_particles(values[:, de.source], src_idx)
+            sample = factor.sample_target(x_src, slice(None), de.forward, generator)
+            pool[:, de.target, de.slot, :, : sample.shape[-1]] = sample
+            weights[de.target, de.slot] = 1.0
+            usable.append(de)
+        has_nb = weights[:, 1:].sum(-1) > 0
+        nb_count = weights[:, 1:].sum(-1).clamp_min(1)
+        weights[:, 1:] = weights[:, 1:] * ((1 - self_weight) / nb_count)[:, None]
+        weights[:, 0] = torch.where(
+            has_nb, torch.full_like(weights[:, 0], self_weight), weights[:, 0]
+        )
+
+    # Draw each slot's component, then take that component's candidate.
+    comp = torch.multinomial(
+        weights.double().clamp_min(0), b * k, replacement=True, generator=generator
+    )
+    comp = comp.reshape(v, b, k).permute(1, 0, 2)  # (B, V, K)
+    new = pool.gather(2, comp[:, :, None, :, None].expand(b, v, 1, k, d)).squeeze(2)
+    new = torch.where(continuous[None, :, None, None], new, values)
+
+    # Mixture density of every new particle under every component.
+    for g, (space, nodes) in enumerate(graph.spaces):
+        if space.discrete:
+            continue
+        kern = space.log_kernel(
+            new[:, nodes][..., : space.dim],
+            values[:, nodes][..., : space.dim],
+            _scaled(scales[g], kernel_mult),
+        )  # (B, N, K, K)
+        comp_logq[:, nodes, 0] = torch.logsumexp(kern + log_w[:, nodes].unsqueeze(-2), -1)
+    for de in usable:
+        factor = graph.pairwise[de.group][1]
+        dens = factor.log_target_density(
+            new[:, de.target], values[:, de.source], slice(None), de.forward
+        )
+        comp_logq[:, de.target, de.slot] = torch.logsumexp(
+            dens + log_w[:, de.source].unsqueeze(-2), -1
+        )
+    log_weights = torch.log(weights.to(values.dtype))[None, :, :, None]  # (1, V, C, 1)
+    log_q = torch.logsumexp(comp_logq + log_weights, dim=2)
+    old_log_q_discrete = torch.where(torch.isinf(log_w), math.inf, 0.0)
+    log_q = torch.where(continuous[None, :, None], log_q, old_log_q_discrete)
+    return new, log_q
