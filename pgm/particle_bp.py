@@ -156,7 +156,7 @@ class ParticleGraph:
         target's proposal components (slot 0 is the node's own marginal)."""
         count = [0] * self.num_nodes
         out = []
-        for g, (edges, factor) in enumerate(self.pairwise):
+        for g, (edges, _factor) in enumerate(self.pairwise):
             edges = torch.as_tensor(edges).long()
             for forward in (True, False):
                 src, dst = (edges[:, 0], edges[:, 1]) if forward else (edges[:, 1], edges[:, 0])
@@ -165,7 +165,7 @@ class ParticleGraph:
                     count[t] += 1
                     slots.append(count[t])
                 out.append(_Directed(g, forward, src, dst, torch.tensor(slots, dtype=torch.long)))
-        return out, max(count + [0])
+        return out, max([*count, 0])
 
 
 def _stats_range(log_w: Tensor) -> Tensor:
