@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 
 from pgm.factors import EdgeIndex, PairwiseFactor
-from pgm.rotations import angle_from_dot, qconj, qexp, qmul, qnormalize, qrotate
+from pgm.rotations import qconj, qexp, qmul, qnormalize, qrotate
 from pgm.schedules import Constant, Schedule
-from pgm.spaces import so3_log_kernel
+from pgm.spaces import so3_log_kernel_from_dot
 
 __all__ = [
     "ContinuousPairwise",
@@ -192,12 +192,12 @@ class RigidConnection(ContinuousPairwise):
         ja = self._joint(xa, self._param(self.offset_a, edges, xa))  # (B, E, K, 3)
         jb = self._joint(xb, self._param(self.offset_b, edges, xb))
         s_p = self.pos_std * self.anneal
-        d2 = torch.cdist(ja, jb).square()  # (B, E, K, K) [i, j]
-        out = -0.5 * d2 / s_p**2 - 3 * math.log(s_p) - 1.5 * _LOG_2PI
+        out = torch.cdist(ja, jb).square_()  # (B, E, K, K) [i, j], then in place
+        out.mul_(-0.5 / s_p**2).sub_(3 * math.log(s_p) + 1.5 * _LOG_2PI)
         if self.rot_std is not None:
             qa = qmul(xa[..., 3:7], self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
             dot = qa @ xb[..., 3:7].transpose(-1, -2)
-            out = out + so3_log_kernel(angle_from_dot(dot), self.rot_std * self.anneal)
+            out.add_(so3_log_kernel_from_dot(dot, self.rot_std * self.anneal))
         return out
 
     def sample_target(self, x_source, edges, forward, generator):

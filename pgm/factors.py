@@ -131,9 +131,10 @@ class TableFactor(PairwiseFactor):
         log_table: ``(K, K)`` shared by every edge, ``(E, K, K)`` one table per edge, or
             ``(B, E, K, K)`` per batch item and edge. Entry ``[..., i, j]`` is
             ``log psi(x_a = i, x_b = j)``; ``-inf`` forbids the pair.
+        validate: check for NaN / +inf (skip only for tables the caller has checked).
     """
 
-    def __init__(self, log_table: Tensor):
+    def __init__(self, log_table: Tensor, validate: bool = True):
         if not isinstance(log_table, Tensor):
             raise TypeError(f"log_table must be a torch.Tensor, got {type(log_table).__name__}")
         if log_table.dim() not in (2, 3, 4) or log_table.shape[-1] != log_table.shape[-2]:
@@ -141,7 +142,8 @@ class TableFactor(PairwiseFactor):
                 "log_table must have shape (K, K), (E, K, K) or (B, E, K, K); "
                 f"got {tuple(log_table.shape)}"
             )
-        _check_finite_or_neg_inf("log_table", log_table)
+        if validate:
+            _check_finite_or_neg_inf("log_table", log_table)
         while log_table.dim() < 4:
             log_table = log_table.unsqueeze(0)
         self.table = log_table  # (B or 1, E or 1, K, K)

@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from pgm.continuous import UnaryFactor
-from pgm.factors import PairwiseFactor
+from pgm.continuous import ContinuousPairwise, UnaryFactor
+from pgm.factors import PairwiseFactor, TableFactor
 from pgm.graph import FactorGraph, GraphError, NotATreeError
 from pgm.loopy import loopy_bp
 from pgm.schedules import Constant, Schedule
@@ -185,6 +185,7 @@ def particle_bp(
     semiring: Semiring | None = None,
     proposal: str = "mixture",
     self_weight: float = 0.5,
+    proposal_centres: int | None = None,
     kernel_scale: float | Sequence | dict | None = None,
     kernel_schedule: Schedule | None = None,
     initial_log_density: Tensor | None = None,
@@ -207,9 +208,13 @@ def particle_bp(
         proposal: ``"mixture"`` (own marginal and neighbours' pushed through ``psi``) or
             ``"own"`` (own marginal only, BPMC-style).
         self_weight: mixture weight of the own-marginal component (``"mixture"`` only).
-        kernel_scale: perturbation kernel per space group (a float for all, a sequence in
-            the order of ``graph.spaces``, or ``{group index: scale}``); required for
-            continuous spaces.
+        proposal_centres: ``None`` (default): each component is a kernel mixture over all K
+            particles weighted by their marginal; ``M``: over M particles resampled from it
+            (weights 1/M) -- still an exact proposal density, at M / K of the cost.
+        kernel_scale: perturbation kernel scale (see each space; SE3 takes ``(metres,
+            radians)``): one scale for every continuous group (a float, tuple or tensor), a
+            *list* in the order of ``graph.spaces`` (``None`` for discrete groups), or
+            ``{group index: scale}``; required when the graph has continuous nodes.
         kernel_schedule: multiplier of ``kernel_scale`` per iteration (default constant 1).
         initial_log_density: ``(B, V, K)`` log density the initial particles were drawn
             from (default: uniform, i.e. the initial particles are taken as a grid).
@@ -292,6 +297,7 @@ def particle_bp(
                     kernel_schedule(it),
                     proposal,
                     self_weight,
+                    proposal_centres,
                     generator,
                 )
             first = False
@@ -302,7 +308,12 @@ def particle_bp(
             measure = (
                 -log_q if not semiring.selects else torch.where(torch.isinf(log_q), -math.inf, 0.0)
             )
-            fg = FactorGraph(unary, graph.pairwise, log_measure=measure.to(dtype), values=values)
+            fg = FactorGraph(
+                unary,
+                _cached_tables(graph, values, k),
+                log_measure=measure.to(dtype),
+                values=values,
+            )
             if is_tree:
                 result = tree_inference(fg, semiring)
                 change = None
@@ -343,7 +354,7 @@ def _kernel_scales(graph: ParticleGraph, kernel_scale) -> dict[int, object]:
         return {}
     if isinstance(kernel_scale, dict):
         scales = dict(kernel_scale)
-    elif isinstance(kernel_scale, (int, float, Tensor)):
+    elif isinstance(kernel_scale, (int, float, tuple, Tensor)):
         scales = dict.fromkeys(continuous, kernel_scale)
     else:
         if len(kernel_scale) != len(graph.spaces):
@@ -359,6 +370,26 @@ def _kernel_scales(graph: ParticleGraph, kernel_scale) -> dict[int, object]:
 
 def _scaled(scale, factor: float):
     return torch.as_tensor(scale) * factor
+
+
+def _cached_tables(graph: ParticleGraph, values: Tensor, k: int) -> list:
+    """Dense factors evaluated once per iteration: tree BP would otherwise evaluate each
+    table twice (upward and downward), loopy BP once per inner iteration."""
+    groups = []
+    for g, (edges, factor) in enumerate(graph.pairwise):
+        if isinstance(factor, ContinuousPairwise) or isinstance(
+            getattr(factor, "base", None), ContinuousPairwise
+        ):
+            e = torch.as_tensor(edges).long()
+            table = factor.log_potential(slice(None), values[:, e[:, 0]], values[:, e[:, 1]], k)
+            if torch.isnan(table.sum()):
+                raise ValueError(
+                    f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN"
+                )
+            groups.append((e, TableFactor(table, validate=False)))
+        else:
+            groups.append((edges, factor))
+    return groups
 
 
 def _unary(graph: ParticleGraph, values: Tensor, estimates: Tensor) -> Tensor:
@@ -414,7 +445,17 @@ def _gather_particles(x: Tensor, idx: Tensor) -> Tensor:
 
 
 def _propose(
-    graph, values, log_w, directed, max_in, scales, kernel_mult, proposal, self_weight, generator
+    graph,
+    values,
+    log_w,
+    directed,
+    max_in,
+    scales,
+    kernel_mult,
+    proposal,
+    self_weight,
+    proposal_centres,
+    generator,
 ):
     """New particles for every continuous node and their mixture log density ``log q``."""
     b, v, k, d = values.shape
@@ -427,13 +468,26 @@ def _propose(
         if not space.discrete:
             continuous[nodes] = True
 
+    def centres(log_w_rows: Tensor, x_rows: Tensor) -> tuple[Tensor, Tensor]:
+        """Kernel centres of a component and their log weights: every particle weighted by
+        its marginal, or (with proposal_centres = M) M particles resampled from it, 1/M each
+        -- a valid proposal whose exact density costs M / K as much to evaluate."""
+        if proposal_centres is None or proposal_centres >= k:
+            return x_rows, log_w_rows
+        idx = _resample_index(log_w_rows, proposal_centres, generator)
+        flat = torch.full(
+            idx.shape, -math.log(proposal_centres), dtype=x_rows.dtype, device=x_rows.device
+        )
+        return _gather_particles(x_rows, idx), flat
+
     # Component 0: own marginal, resampled and perturbed.
-    own_src = _resample_index(log_w, k, generator)  # (B, V, K)
+    own = {}
     for g, (space, nodes) in enumerate(graph.spaces):
         if space.discrete:
             continue
-        x = values[:, nodes][..., : space.dim]
-        picked = _gather_particles(x, own_src[:, nodes])
+        c_x, c_w = centres(log_w[:, nodes], values[:, nodes][..., : space.dim])
+        own[g] = (c_x, c_w)
+        picked = _gather_particles(c_x, _resample_index(c_w, k, generator))
         pool[:, nodes, 0, :, : space.dim] = space.perturb(
             picked, _scaled(scales[g], kernel_mult), generator
         )
@@ -448,12 +502,12 @@ def _propose(
             tgt_ok = continuous[de.target]
             if not tgt_ok.any():
                 continue
-            src_idx = _resample_index(log_w[:, de.source], k, generator)  # (B, E, K)
-            x_src = _gather_particles(values[:, de.source], src_idx)
+            c_x, c_w = centres(log_w[:, de.source], values[:, de.source])
+            x_src = _gather_particles(c_x, _resample_index(c_w, k, generator))  # (B, E, K, D)
             sample = factor.sample_target(x_src, slice(None), de.forward, generator)
             pool[:, de.target, de.slot, :, : sample.shape[-1]] = sample
             weights[de.target, de.slot] = 1.0
-            usable.append(de)
+            usable.append((de, c_x, c_w))
         has_nb = weights[:, 1:].sum(-1) > 0
         nb_count = weights[:, 1:].sum(-1).clamp_min(1)
         weights[:, 1:] = weights[:, 1:] * ((1 - self_weight) / nb_count)[:, None]
@@ -473,20 +527,15 @@ def _propose(
     for g, (space, nodes) in enumerate(graph.spaces):
         if space.discrete:
             continue
+        c_x, c_w = own[g]
         kern = space.log_kernel(
-            new[:, nodes][..., : space.dim],
-            values[:, nodes][..., : space.dim],
-            _scaled(scales[g], kernel_mult),
-        )  # (B, N, K, K)
-        comp_logq[:, nodes, 0] = torch.logsumexp(kern + log_w[:, nodes].unsqueeze(-2), -1)
-    for de in usable:
+            new[:, nodes][..., : space.dim], c_x, _scaled(scales[g], kernel_mult)
+        )
+        comp_logq[:, nodes, 0] = torch.logsumexp(kern + c_w.unsqueeze(-2), -1)  # (B, N, K)
+    for de, c_x, c_w in usable:
         factor = graph.pairwise[de.group][1]
-        dens = factor.log_target_density(
-            new[:, de.target], values[:, de.source], slice(None), de.forward
-        )
-        comp_logq[:, de.target, de.slot] = torch.logsumexp(
-            dens + log_w[:, de.source].unsqueeze(-2), -1
-        )
+        dens = factor.log_target_density(new[:, de.target], c_x, slice(None), de.forward)
+        comp_logq[:, de.target, de.slot] = torch.logsumexp(dens + c_w.unsqueeze(-2), -1)
     log_weights = torch.log(weights.to(values.dtype))[None, :, :, None]  # (1, V, C, 1)
     log_q = torch.logsumexp(comp_logq + log_weights, dim=2)
     old_log_q_discrete = torch.where(torch.isinf(log_w), math.inf, 0.0)

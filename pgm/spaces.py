@@ -22,9 +22,16 @@ import math
 import torch
 from torch import Tensor
 
-from pgm.rotations import angle_from_dot, qangle, qexp, qmul, qnormalize
+from pgm.rotations import qangle, qexp, qmul, qnormalize
 
-__all__ = ["SE3", "Discrete", "Euclidean", "StateSpace", "so3_log_kernel"]
+__all__ = [
+    "SE3",
+    "Discrete",
+    "Euclidean",
+    "StateSpace",
+    "so3_log_kernel",
+    "so3_log_kernel_from_dot",
+]
 
 _LOG_2PI = math.log(2 * math.pi)
 
@@ -50,13 +57,31 @@ def so3_log_kernel(angle: Tensor, std: Tensor | float) -> Tensor:
     the Gaussian is divided by that Jacobian; wrap-around past pi is ignored (fine for
     ``std`` well below pi). Shapes: broadcast of ``angle`` and ``std``.
     """
-    std = torch.as_tensor(std, dtype=angle.dtype, device=angle.device)
-    gauss = -0.5 * (angle / std) ** 2 - 3 * torch.log(std) - 1.5 * _LOG_2PI
-    # log(a^2 / (2 (1 - cos a))) = log((a/2)^2 / sin^2(a/2)), -> 0 as a -> 0
-    half = 0.5 * angle
-    jac = 2 * (torch.log(half.clamp_min(1e-12)) - torch.log(torch.sin(half).clamp_min(1e-12)))
-    jac = torch.where(half < 1e-6, torch.zeros_like(jac), jac)
-    return gauss + jac
+    return _so3_log_kernel_half(0.5 * angle, std)
+
+
+def _so3_log_kernel_half(half: Tensor, std: Tensor | float) -> Tensor:
+    """:func:`so3_log_kernel` from the half angle ``h = a / 2`` (what ``acos`` of quaternion
+    dot products gives), in one fused polynomial: the Gaussian is ``-2 h^2 / std^2`` and the
+    Jacobian ``log(h^2 / sin^2 h) = -2 log(sin h / h)``, whose Taylor series
+    ``h^2/3 + h^4/90 + 2h^6/2835 + h^8/18900 + 2h^10/467775 + 1382h^12/3831077250`` is
+    truncated with an error below 3e-5 for h <= pi/2 (tested against the closed form)."""
+    std = torch.as_tensor(std, dtype=half.dtype, device=half.device)
+    h2 = half * half
+    # Horner's scheme in place: these tensors are (B, E, K, K) tables, so every avoided
+    # temporary is a pass over memory saved.
+    poly = h2 * (1382.0 / 3831077250)
+    poly.add_(2.0 / 467775)
+    for c in (1.0 / 18900, 2.0 / 2835, 1.0 / 90):
+        poly.mul_(h2).add_(c)
+    poly.mul_(h2).add_(1.0 / 3 - 2.0 / std**2)
+    return poly.mul_(h2).sub_(3 * torch.log(std) + 1.5 * _LOG_2PI)
+
+
+def so3_log_kernel_from_dot(dot: Tensor, std: Tensor | float) -> Tensor:
+    """:func:`so3_log_kernel` from quaternion dot products ``<q, q_c>`` (e.g. a batched
+    matmul of two particle sets). Overwrites nothing; shapes: broadcast of inputs."""
+    return _so3_log_kernel_half(torch.acos_(dot.abs().clamp_(max=1.0)), std)
 
 
 class StateSpace:
@@ -148,10 +173,10 @@ class SE3(StateSpace):
 
     def log_kernel(self, x, centres, scale):
         s = _as_scale(scale, 2, x)
-        d2 = torch.cdist(x[..., :3], centres[..., :3]).square()  # (..., K, M)
-        pos = -0.5 * d2 / s[0] ** 2 - 3 * torch.log(s[0]) - 1.5 * _LOG_2PI
+        out = torch.cdist(x[..., :3], centres[..., :3]).square_()  # (..., K, M), in place
+        out.mul_(-0.5 / s[0] ** 2).sub_(3 * torch.log(s[0]) + 1.5 * _LOG_2PI)
         dot = x[..., 3:] @ centres[..., 3:].transpose(-1, -2)
-        return pos + so3_log_kernel(angle_from_dot(dot), s[1])
+        return out.add_(so3_log_kernel_from_dot(dot, s[1]))
 
     def weighted_mean(self, x, log_weights):
         w = torch.softmax(log_weights, -1)

@@ -8,6 +8,8 @@ import torch
 from pgm.rotations import qangle, qconj, qexp, qlog, qmul, qnormalize, qrotate
 from pgm.spaces import SE3, Discrete, Euclidean, so3_log_kernel
 
+F64 = torch.float64
+
 
 def _random_quats(n, seed=0):
     g = torch.Generator().manual_seed(seed)
@@ -123,3 +125,23 @@ def test_space_validation_errors():
         Euclidean(2).perturb(torch.zeros(3, 2), torch.ones(3))
     with pytest.raises(ValueError, match="num_states"):
         Discrete(0)
+
+
+def test_so3_kernel_polynomial_matches_closed_form():
+    """The fused series for the exp-map Jacobian against log(h^2 / sin^2 h) + the Gaussian."""
+    from pgm.spaces import so3_log_kernel_from_dot
+
+    angle = torch.linspace(0.0, math.pi, 2001, dtype=F64)[1:]
+    std = 0.4
+    half = angle / 2
+    closed = (
+        -0.5 * (angle / std) ** 2
+        - 3 * math.log(std)
+        - 1.5 * math.log(2 * math.pi)
+        + 2 * torch.log(half)
+        - 2 * torch.log(torch.sin(half))
+    )
+    torch.testing.assert_close(so3_log_kernel(angle, std), closed, atol=3e-5, rtol=0)
+    torch.testing.assert_close(
+        so3_log_kernel_from_dot(torch.cos(half), std), closed, atol=3e-5, rtol=1e-6
+    )
