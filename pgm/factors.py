@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pgm.semiring import Semiring
+from pgm.semiring import LogSemiring, Semiring
 
 __all__ = ["BandedMonotoneFactor", "MonotoneFactor", "PairwiseFactor", "TableFactor"]
 
@@ -148,6 +148,48 @@ class TableFactor(PairwiseFactor):
             log_table = log_table.unsqueeze(0)
         self.table = log_table  # (B or 1, E or 1, K, K)
         self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
+
+    #: below this many states the plain log-sum-exp message is as fast as the matmul one
+    MATMUL_MIN_STATES = 32
+
+    def message(self, h, edges, forward, semiring, xa=None, xb=None):
+        # Sum-product messages through a large dense table are a batched mat-vec in linear
+        # space: exp(T - max) is computed once per direction and reused by every call
+        # (tree BP asks each edge twice, loopy BP once per sweep), instead of a fresh
+        # log-sum-exp over (B, E, K, K) each time.
+        if type(semiring) is LogSemiring and self.table.shape[-1] >= self.MATMUL_MIN_STATES:
+            return self._matmul_message(h, edges, forward)
+        return super().message(h, edges, forward, semiring, xa, xb)
+
+    def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor]:
+        cache = self.__dict__.setdefault("_exp_cache", {})
+        if forward not in cache:
+            dim = -2 if forward else -1  # forward sums over a (rows), backward over b (columns)
+            peak = self.table.amax(dim, keepdim=True)
+            peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))
+            cache[forward] = ((self.table - peak).exp_(), peak.squeeze(dim))
+        return cache[forward]
+
+    def _matmul_message(self, h: Tensor, edges: EdgeIndex, forward: bool) -> Tensor:
+        scaled, peak = self._scaled_exp(forward)
+        if self.table.shape[1] > 1:
+            scaled, peak = scaled[:, edges], peak[:, edges]
+        h_peak = h.amax(-1, keepdim=True)
+        h_peak = torch.where(torch.isfinite(h_peak), h_peak, torch.zeros_like(h_peak))
+        w = (h - h_peak).exp().unsqueeze(-1)  # (B, E, K, 1)
+        if forward:
+            s = (scaled.transpose(-1, -2) @ w).squeeze(-1)  # sum over a for each b
+        else:
+            s = (scaled @ w).squeeze(-1)
+        out = torch.log(s) + peak + h_peak
+        lost = s == 0  # all mass underflowed (or truly none): redo those entries exactly
+        if lost.any():
+            table = self.table if self.table.shape[1] == 1 else self.table[:, edges]
+            table = table.expand(h.shape[0], h.shape[1], *table.shape[-2:])
+            b, e, j = lost.nonzero(as_tuple=True)
+            rows = table[b, e, :, j] if forward else table[b, e, j, :]
+            out[b, e, j] = torch.logsumexp(rows + h[b, e], -1)
+        return out
 
     def log_potential(self, edges, xa, xb, num_states):
         if self.table.shape[-1] != num_states:

@@ -14,6 +14,7 @@ from pgm import (
     LogSemiring,
     MaxSemiring,
     MonotoneFactor,
+    PairwiseFactor,
     TableFactor,
     chain_inference,
     chain_map,
@@ -200,3 +201,25 @@ def test_banded_fused_viterbi_breaks_ties_like_the_generic_path():
     generic = chain_map(unary, factor, use_fused=False)
     assert torch.equal(fused.assignment, generic.assignment)
     torch.testing.assert_close(fused.log_partition, generic.log_partition)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_table_matmul_messages_equal_log_sum_exp(dtype):
+    """Large tables take the exp-matmul path; it must agree with log-sum-exp, including
+    forbidden pairs and a dynamic range that underflows exp() (recomputed exactly)."""
+    torch.manual_seed(5)
+    k = 64
+    table = torch.randn(2, 3, k, k, dtype=dtype) * 5
+    table[0, 0, :, 3] = -math.inf  # a column with no mass
+    table[1, 2, 7] = -math.inf
+    table[1, 1, :10, 20] = -400.0  # far below the column's peak -> exp underflows
+    table[1, 1, 10:, 20] = -math.inf
+    h = torch.randn(2, 3, k, dtype=dtype) * 3
+    h[1, 1, 10:] = -math.inf
+    h[1, 1, :10] = 50.0
+    factor = TableFactor(table)
+    for forward in (True, False):
+        fast = factor.message(h, slice(None), forward, LogSemiring())
+        slow = PairwiseFactor.message(factor, h, slice(None), forward, LogSemiring())
+        torch.testing.assert_close(fast, slow, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-4)
+    assert torch.isfinite(factor.message(h, slice(None), True, LogSemiring())[1, 1, 20])
