@@ -191,6 +191,7 @@ def particle_bp(
     initial_log_density: Tensor | None = None,
     loopy_iterations: int = 30,
     loopy_damping: float = 0.0,
+    batch_chunk: int | None = None,
     callback: Callable[[IterationStats], None] | None = None,
 ) -> ParticleResult:
     """Run particle belief propagation.
@@ -219,6 +220,9 @@ def particle_bp(
         initial_log_density: ``(B, V, K)`` log density the initial particles were drawn
             from (default: uniform, i.e. the initial particles are taken as a grid).
         loopy_iterations, loopy_damping: inner loopy-BP settings when the graph has cycles.
+        batch_chunk: frames processed together in the proposal and BP steps (default: as
+            many as keep ~8 MB of pairwise tables; results do not depend on it except
+            through the order of random draws).
         callback: called with each iteration's :class:`IterationStats`.
 
     Returns:
@@ -260,6 +264,8 @@ def particle_bp(
             raise ValueError(
                 f"initial_log_density must have shape ({b}, {v}, {k}); got {tuple(initial_log_density.shape)}"
             )
+        if torch.isnan(initial_log_density).any() or torch.isposinf(initial_log_density).any():
+            raise ValueError("initial_log_density contains NaN or +inf")
         log_q = initial_log_density.to(dtype).clone()
     for space, nodes in graph.spaces:
         if space.discrete:
@@ -277,6 +283,13 @@ def particle_bp(
     except NotATreeError:
         is_tree = False
 
+    if batch_chunk is None:  # ~8 MB of (E, K, K) tables per chunk
+        per_frame = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
+        batch_chunk = max(1, (8 << 20) // per_frame)
+    if not isinstance(batch_chunk, int) or batch_chunk < 1:
+        raise ValueError(f"batch_chunk must be an int >= 1 or None; got {batch_chunk!r}")
+    chunks = [slice(s, min(s + batch_chunk, b)) for s in range(0, b, batch_chunk)]
+
     log_w = torch.full((b, v, k), -math.log(k), dtype=dtype, device=device)
     log_w = log_w.masked_fill(torch.isinf(log_q), -math.inf)
     mean = best = None
@@ -287,19 +300,25 @@ def particle_bp(
             for _, factor in graph.pairwise:
                 factor.set_iteration(it)
             if not first:
-                values, log_q = _propose(
-                    graph,
-                    values,
-                    log_w,
-                    directed,
-                    max_in,
-                    scales,
-                    kernel_schedule(it),
-                    proposal,
-                    self_weight,
-                    proposal_centres,
-                    generator,
-                )
+                # Frames are independent here: chunks keep the (B, E, K, K) work in cache.
+                parts = [
+                    _propose(
+                        graph,
+                        values[c],
+                        log_w[c],
+                        directed,
+                        max_in,
+                        scales,
+                        kernel_schedule(it),
+                        proposal,
+                        self_weight,
+                        proposal_centres,
+                        generator,
+                    )
+                    for c in chunks
+                ]
+                values = torch.cat([p[0] for p in parts])
+                log_q = torch.cat([p[1] for p in parts])
             first = False
             estimates = best if best is not None else _estimate(graph, values, log_w)[0]
             unary = _unary(graph, values, estimates)
@@ -307,21 +326,24 @@ def particle_bp(
             # locations: the sampling density is no part of the objective, only the support.
             measure = (
                 -log_q if not semiring.selects else torch.where(torch.isinf(log_q), -math.inf, 0.0)
-            )
-            fg = FactorGraph(
-                unary,
-                _cached_tables(graph, values, k),
-                log_measure=measure.to(dtype),
-                values=values,
-            )
-            if is_tree:
-                result = tree_inference(fg, semiring)
-                change = None
-            else:
-                result = loopy_bp(
-                    fg, semiring, max_iters=loopy_iterations, damping=loopy_damping, tol=1e-6
+            ).to(dtype)
+            marginals, change = [], None
+            for c in chunks:
+                fg = FactorGraph(
+                    unary[c],
+                    _cached_tables(graph, values[c], k),
+                    log_measure=measure[c],
+                    values=values[c],
                 )
-                change = result.message_change[-1]
+                if is_tree:
+                    result = tree_inference(fg, semiring)
+                else:
+                    result = loopy_bp(
+                        fg, semiring, max_iters=loopy_iterations, damping=loopy_damping, tol=1e-6
+                    )
+                    change = max(change or 0.0, result.message_change[-1])
+                marginals.append(result.log_marginals)
+            result.log_marginals = torch.cat(marginals)
             log_w = torch.log_softmax(result.log_marginals, -1)
             if torch.isnan(log_w).any():
                 bad = torch.isnan(log_w).any(-1).nonzero()[0].tolist()

@@ -331,3 +331,41 @@ def test_bad_input_errors():
             2, [(Discrete(5), torch.tensor([0])), (Euclidean(1), torch.tensor([1]))]
         )
         particle_bp(hyb, torch.zeros(1, 2, 4, 1), kernel_scale=[None, 0.1])
+
+
+class Recorder(UnaryFactor):
+    """Records the estimates it is given; pulls node 1 towards node 0's current estimate."""
+
+    def __init__(self):
+        self.seen = []
+
+    def log_potential(self, x, nodes, estimates):
+        self.seen.append(estimates.clone())
+        return -0.5 * ((x[..., 0] - estimates[:, :1, None, 0]) / 0.5) ** 2
+
+
+def test_observation_factors_see_the_other_nodes_current_estimates():
+    """The occlusion-aware interface: a factor on node 1 receives every node's estimate
+    from the previous iteration (the best particles), batched (B, V, D)."""
+    def run(iterations):
+        rec = Recorder()
+        graph = ParticleGraph(2, [(Euclidean(1), torch.arange(2))], [],
+                              [(torch.tensor([0]), GaussianUnary(torch.tensor([[3.0]], dtype=F64), 0.3)),
+                               (torch.tensor([1]), rec)])
+        g = torch.Generator().manual_seed(11)
+        init = torch.randn(2, 2, 100, 1, generator=g, dtype=F64)
+        return particle_bp(graph, init, iterations=iterations, generator=g, kernel_scale=0.8), rec
+
+    one, _ = run(1)
+    three, rec = run(8)
+    assert rec.seen[1].shape == (2, 2, 1)
+    torch.testing.assert_close(rec.seen[1], one.best)  # iteration 1 sees iteration 0's estimates
+    # node 1 has no observation of its own but follows node 0 (observed at 3.0)
+    assert (three.mean[:, 1, 0] - 3.0).abs().max() < 0.3
+
+
+def test_non_finite_initial_density_is_rejected():
+    graph = ParticleGraph(1, [(Euclidean(1), torch.arange(1))])
+    with pytest.raises(ValueError, match="initial_log_density contains NaN"):
+        particle_bp(graph, torch.zeros(1, 1, 5, 1), kernel_scale=0.1,
+                    initial_log_density=torch.full((1, 1, 5), math.nan))
