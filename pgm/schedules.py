@@ -39,42 +39,40 @@ class Constant(Schedule):
         return f"Constant({self.value})"
 
 
-class Geometric(Schedule):
+class _Ramp(Schedule):
+    """From ``start`` at iteration 0 to ``end`` at iteration ``steps - 1``, then ``end``."""
+
+    def __init__(self, start: float, end: float, steps: int):
+        self.start = _check_positive("start", start)
+        self.end = _check_positive("end", end)
+        if not isinstance(steps, int) or steps < 1:
+            raise ValueError(f"steps must be an int >= 1; got {steps!r}")
+        self.steps = steps
+
+    def __call__(self, iteration: int) -> float:
+        if self.steps == 1 or iteration >= self.steps - 1:
+            return self.end
+        return self._between(iteration / (self.steps - 1))
+
+    def _between(self, fraction: float) -> float:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.start}, {self.end}, {self.steps})"
+
+
+class Geometric(_Ramp):
     """``start * (end / start) ** (n / (steps - 1))``, then ``end``: a constant ratio per step."""
 
-    def __init__(self, start: float, end: float, steps: int):
-        self.start = _check_positive("start", start)
-        self.end = _check_positive("end", end)
-        if not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"steps must be an int >= 1; got {steps!r}")
-        self.steps = steps
-
-    def __call__(self, iteration: int) -> float:
-        if self.steps == 1 or iteration >= self.steps - 1:
-            return self.end
-        return self.start * (self.end / self.start) ** (iteration / (self.steps - 1))
-
-    def __repr__(self) -> str:
-        return f"Geometric({self.start}, {self.end}, {self.steps})"
+    def _between(self, fraction: float) -> float:
+        return self.start * (self.end / self.start) ** fraction
 
 
-class Linear(Schedule):
+class Linear(_Ramp):
     """``start + (end - start) * n / (steps - 1)``, then ``end``."""
 
-    def __init__(self, start: float, end: float, steps: int):
-        self.start = _check_positive("start", start)
-        self.end = _check_positive("end", end)
-        if not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"steps must be an int >= 1; got {steps!r}")
-        self.steps = steps
-
-    def __call__(self, iteration: int) -> float:
-        if self.steps == 1 or iteration >= self.steps - 1:
-            return self.end
-        return self.start + (self.end - self.start) * iteration / (self.steps - 1)
-
-    def __repr__(self) -> str:
-        return f"Linear({self.start}, {self.end}, {self.steps})"
+    def _between(self, fraction: float) -> float:
+        return self.start + (self.end - self.start) * fraction
 
 
 class Stepwise(Schedule):
