@@ -221,5 +221,7 @@ def test_table_matmul_messages_equal_log_sum_exp(dtype):
     for forward in (True, False):
         fast = factor.message(h, slice(None), forward, LogSemiring())
         slow = PairwiseFactor.message(factor, h, slice(None), forward, LogSemiring())
-        torch.testing.assert_close(fast, slow, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-4)
+        torch.testing.assert_close(
+            fast, slow, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-4
+        )
     assert torch.isfinite(factor.message(h, slice(None), True, LogSemiring())[1, 1, 20])

@@ -347,11 +347,18 @@ class Recorder(UnaryFactor):
 def test_observation_factors_see_the_other_nodes_current_estimates():
     """The occlusion-aware interface: a factor on node 1 receives every node's estimate
     from the previous iteration (the best particles), batched (B, V, D)."""
+
     def run(iterations):
         rec = Recorder()
-        graph = ParticleGraph(2, [(Euclidean(1), torch.arange(2))], [],
-                              [(torch.tensor([0]), GaussianUnary(torch.tensor([[3.0]], dtype=F64), 0.3)),
-                               (torch.tensor([1]), rec)])
+        graph = ParticleGraph(
+            2,
+            [(Euclidean(1), torch.arange(2))],
+            [],
+            [
+                (torch.tensor([0]), GaussianUnary(torch.tensor([[3.0]], dtype=F64), 0.3)),
+                (torch.tensor([1]), rec),
+            ],
+        )
         g = torch.Generator().manual_seed(11)
         init = torch.randn(2, 2, 100, 1, generator=g, dtype=F64)
         return particle_bp(graph, init, iterations=iterations, generator=g, kernel_scale=0.8), rec
@@ -367,5 +374,9 @@ def test_observation_factors_see_the_other_nodes_current_estimates():
 def test_non_finite_initial_density_is_rejected():
     graph = ParticleGraph(1, [(Euclidean(1), torch.arange(1))])
     with pytest.raises(ValueError, match="initial_log_density contains NaN"):
-        particle_bp(graph, torch.zeros(1, 1, 5, 1), kernel_scale=0.1,
-                    initial_log_density=torch.full((1, 1, 5), math.nan))
+        particle_bp(
+            graph,
+            torch.zeros(1, 1, 5, 1),
+            kernel_scale=0.1,
+            initial_log_density=torch.full((1, 1, 5), math.nan),
+        )
