@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BVH", "BVHError", "read_bvh"]
+__all__ = ["BVH", "BVHError", "read_bvh", "write_bvh"]
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 
@@ -225,3 +225,44 @@ def read_bvh(path: str | Path) -> BVH:
         frame_time=frame_time,
         motion=np.array(rows, dtype=np.float64).reshape(num_frames, num_channels),
     )
+
+
+def write_bvh(bvh: BVH, path: str | Path) -> Path:
+    """Write a :class:`BVH` so that :func:`read_bvh` gives back the same numbers exactly.
+
+    Values are written with Python's shortest round-trip float repr; line ends are ``\\n``.
+    Returns the path written.
+    """
+    path = Path(path)
+    children: dict[int, list[int]] = {j: [] for j in range(len(bvh.names))}
+    for j, p in enumerate(bvh.parents.tolist()):
+        if p >= 0:
+            children[p].append(j)
+    out = ["HIERARCHY"]
+
+    def fmt(values) -> str:
+        return " ".join(repr(float(v)) for v in values)
+
+    def joint(j: int, depth: int) -> None:
+        pad = "\t" * depth
+        out.append(f"{pad}{'ROOT' if j == 0 else 'JOINT'} {bvh.names[j]}")
+        out.append(f"{pad}{{")
+        out.append(f"{pad}\tOFFSET {fmt(bvh.offsets[j])}")
+        if bvh.channels[j]:
+            out.append(f"{pad}\tCHANNELS {len(bvh.channels[j])} {' '.join(bvh.channels[j])}")
+        for c in children[j]:
+            joint(c, depth + 1)
+        if j in bvh.end_sites:
+            out.append(f"{pad}\tEnd Site")
+            out.append(f"{pad}\t{{")
+            out.append(f"{pad}\t\tOFFSET {fmt(bvh.end_sites[j])}")
+            out.append(f"{pad}\t}}")
+        out.append(f"{pad}}}")
+
+    joint(0, 0)
+    out.append("MOTION")
+    out.append(f"Frames: {bvh.num_frames}")
+    out.append(f"Frame Time: {bvh.frame_time!r}")
+    out.extend(fmt(row) for row in bvh.motion)
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return path

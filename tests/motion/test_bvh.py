@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motion.bvh import BVHError, read_bvh
+from motion.bvh import BVHError, read_bvh, write_bvh
 from tests.conftest import SHARED_DATA, requires_shared_data
 
 BUNDLED = Path(__file__).resolve().parents[2] / "motion" / "data" / "cmu_02_01_walk.bvh"
@@ -112,3 +112,24 @@ def test_small_file_with_exponents_and_crlf(tmp_path, newline):
 def test_malformed_files_name_file_and_line(tmp_path, edit, message):
     with pytest.raises(BVHError, match=message):
         read_bvh(_write(tmp_path, edit(GOOD)))
+
+
+def _same(a, b):
+    assert a.names == b.names and a.channels == b.channels
+    assert np.array_equal(a.parents, b.parents) and np.array_equal(a.offsets, b.offsets)
+    assert a.end_sites.keys() == b.end_sites.keys()
+    assert all(np.array_equal(a.end_sites[k], b.end_sites[k]) for k in a.end_sites)
+    assert a.frame_time == b.frame_time and np.array_equal(a.motion, b.motion)
+
+
+def test_round_trip_bundled(tmp_path):
+    a = read_bvh(BUNDLED)
+    _same(a, read_bvh(write_bvh(a, tmp_path / "out.bvh")))
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+@pytest.mark.parametrize("name", [f for f, *_ in SHARED_FILES if "01_01" not in f])
+def test_round_trip_every_shared_file(tmp_path, name):
+    a = read_bvh(SHARED_DATA / "bvh" / name)
+    _same(a, read_bvh(write_bvh(a, tmp_path / "out.bvh")))
