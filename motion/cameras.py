@@ -1,0 +1,218 @@
+"""Cameras: pinhole (with OpenCV's distortion model) and orthographic, rigs, DLT, calibration files.
+
+Conventions (stated once): world points are metres; a camera maps world to camera frame by
+``X_c = R X_w + t`` (OpenCV: x right, y down, z forward); pixels ``(u, v)`` with ``u`` to the
+right and ``v`` down, origin at the top-left pixel's centre as OpenCV. Distortion is OpenCV's
+``(k1, k2, p1, p2, k3)``. Shapes: ``C`` cameras, any leading batch ``(...)``, ``N`` points.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from torch import Tensor
+
+__all__ = [
+    "CameraFileError",
+    "CameraRig",
+    "decompose_projection",
+    "dlt",
+    "load_pose2sim_calibration",
+]
+
+
+class CameraFileError(ValueError):
+    """A calibration file that cannot be used; the message names the file and the key."""
+
+
+@dataclass
+class CameraRig:
+    """``C`` static cameras.
+
+    Attributes:
+        K: ``(C, 3, 3)`` intrinsics (pixels). For orthographic cameras ``K[0, 0]``/``K[1, 1]``
+            are pixels per metre.
+        R: ``(C, 3, 3)`` world-to-camera rotation. t: ``(C, 3)`` metres.
+        dist: ``(C, 5)`` OpenCV distortion ``k1, k2, p1, p2, k3`` (zeros: none).
+        size: ``(C, 2)`` image width and height in pixels.
+        names: camera names. orthographic: project without the division by depth.
+    """
+
+    K: Tensor
+    R: Tensor
+    t: Tensor
+    dist: Tensor
+    size: Tensor
+    names: list[str]
+    orthographic: bool = False
+
+    @property
+    def num_cameras(self) -> int:
+        return self.K.shape[0]
+
+    def to_camera(self, points: Tensor) -> Tensor:
+        """World to camera frames. ``(..., N, 3)`` -> ``(..., C, N, 3)``."""
+        r = self.R.to(points)
+        t = self.t.to(points)
+        return torch.einsum("cij,...nj->...cni", r, points) + t[:, None, :]
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Pixels and depths of world points in every camera.
+
+        Returns:
+            uv ``(..., C, N, 2)`` pixels and depth ``(..., C, N)`` metres (``z`` in the camera
+            frame; points with depth <= 0 are behind the camera and their ``uv`` is meaningless).
+        """
+        pc = self.to_camera(points)
+        z = pc[..., 2]
+        if self.orthographic:
+            xy = pc[..., :2]
+        else:
+            xy = pc[..., :2] / z.unsqueeze(-1)
+            xy = self._distort(xy)
+        k = self.K.to(points)
+        u = k[:, None, 0, 0] * xy[..., 0] + k[:, None, 0, 1] * xy[..., 1] + k[:, None, 0, 2]
+        v = k[:, None, 1, 1] * xy[..., 1] + k[:, None, 1, 2]
+        return torch.stack([u, v], -1), z
+
+    def _distort(self, xy: Tensor) -> Tensor:
+        d = self.dist.to(xy)[:, None, :]  # (C, 1, 5)
+        k1, k2, p1, p2, k3 = d.unbind(-1)
+        x, y = xy[..., 0], xy[..., 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return torch.stack([xd, yd], -1)
+
+    def centres(self) -> Tensor:
+        """Camera centres in the world, ``(C, 3)`` metres: ``-R^T t``."""
+        return -(self.R.transpose(-1, -2) @ self.t.unsqueeze(-1)).squeeze(-1)
+
+    @classmethod
+    def from_projection(cls, P: Tensor, size: Tensor, names: list[str]) -> CameraRig:
+        """Distortion-free cameras from ``(C, 3, 4)`` projection matrices."""
+        k, r, t = decompose_projection(P)
+        return cls(k, r, t, torch.zeros(P.shape[0], 5, dtype=P.dtype), size, names)
+
+
+def load_pose2sim_calibration(path: str | Path) -> CameraRig:
+    """Read a Pose2Sim calibration TOML (``[cam]`` tables with ``size``, ``matrix``,
+    ``distortions`` (k1 k2 p1 p2), ``rotation`` (Rodrigues), ``translation``, ``fisheye``).
+
+    Raises:
+        CameraFileError: naming the file, the camera and the key that is missing or malformed.
+        FileNotFoundError: if the file does not exist.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise CameraFileError(f"{path}: not valid TOML ({err})") from None
+    cams = {k: v for k, v in data.items() if isinstance(v, dict) and k != "metadata"}
+    if not cams:
+        raise CameraFileError(f"{path}: no camera tables found")
+    ks, rs, ts, ds, sizes, names = [], [], [], [], [], []
+    for key, cam in cams.items():
+
+        def get(name, shape, key=key, cam=cam):
+            if name not in cam:
+                raise CameraFileError(f"{path}: camera [{key}] has no '{name}'")
+            value = torch.tensor(cam[name], dtype=torch.float64)
+            if tuple(value.shape) != shape or not torch.isfinite(value).all():
+                raise CameraFileError(
+                    f"{path}: camera [{key}] '{name}' must be finite with shape {shape}; got "
+                    f"{tuple(value.shape)}"
+                )
+            return value
+
+        if cam.get("fisheye", False):
+            raise CameraFileError(f"{path}: camera [{key}] is fisheye, which is not supported")
+        ks.append(get("matrix", (3, 3)))
+        dist = get("distortions", (4,))
+        ds.append(torch.cat([dist, torch.zeros(1, dtype=torch.float64)]))
+        rs.append(axis_angle_to_rotation_matrix(get("rotation", (3,))[None])[0])
+        ts.append(get("translation", (3,)))
+        sizes.append(get("size", (2,)))
+        names.append(str(cam.get("name", key)))
+    return CameraRig(
+        torch.stack(ks),
+        torch.stack(rs),
+        torch.stack(ts),
+        torch.stack(ds),
+        torch.stack(sizes),
+        names,
+    )
+
+
+def _normaliser(points: Tensor) -> Tensor:
+    """Hartley normalisation: centroid to 0, mean distance sqrt(dim). ``(N, d)`` -> ``(d+1, d+1)``."""
+    d = points.shape[-1]
+    mean = points.mean(0)
+    scale = math.sqrt(d) / (points - mean).norm(dim=-1).mean().clamp_min(1e-12)
+    t = torch.eye(d + 1, dtype=points.dtype)
+    t[:d, :d] *= scale
+    t[:d, d] = -scale * mean
+    return t
+
+
+def dlt(points3d: Tensor, points2d: Tensor) -> Tensor:
+    """Projection matrix from 2D-3D correspondences by the normalised DLT (proposal 4.4.1).
+
+    Args:
+        points3d: ``(N, 3)`` world points, N >= 6, not all coplanar.
+        points2d: ``(N, 2)`` their pixels (undistorted).
+
+    Returns:
+        ``(3, 4)`` P with ``P[2, :3]`` of unit norm and positive depth for the points.
+    """
+    if points3d.dim() != 2 or points3d.shape[-1] != 3 or points2d.shape != (points3d.shape[0], 2):
+        raise ValueError(
+            f"dlt needs points3d (N, 3) and points2d (N, 2); got {tuple(points3d.shape)} and "
+            f"{tuple(points2d.shape)}"
+        )
+    if points3d.shape[0] < 6:
+        raise ValueError(f"dlt needs at least 6 correspondences; got {points3d.shape[0]}")
+    x3 = points3d.double()
+    x2 = points2d.double()
+    t3, t2 = _normaliser(x3), _normaliser(x2)
+    h3 = torch.cat([x3, torch.ones(len(x3), 1, dtype=x3.dtype)], 1) @ t3.T
+    h2 = torch.cat([x2, torch.ones(len(x2), 1, dtype=x2.dtype)], 1) @ t2.T
+    zeros = torch.zeros_like(h3)
+    rows_u = torch.cat([h3, zeros, -h2[:, :1] * h3], 1)
+    rows_v = torch.cat([zeros, h3, -h2[:, 1:2] * h3], 1)
+    a = torch.cat([rows_u, rows_v], 0)
+    _, _, vh = torch.linalg.svd(a)
+    p = torch.linalg.solve(t2, vh[-1].reshape(3, 4) @ t3)
+    p = p / p[2, :3].norm()
+    depth = torch.cat([x3, torch.ones(len(x3), 1, dtype=x3.dtype)], 1) @ p[2]
+    if (depth < 0).sum() > len(depth) / 2:
+        p = -p
+    return p.to(points3d.dtype)
+
+
+def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``P = K [R | t]`` by RQ decomposition, ``K`` with positive diagonal, ``det R = +1``.
+
+    Shapes: ``(..., 3, 4)`` -> K ``(..., 3, 3)`` (``K[2, 2] = 1``), R ``(..., 3, 3)``, t ``(..., 3)``.
+    """
+    m = P[..., :3]
+    # RQ via QR of the row-reversed transpose: M = K R.
+    flip = torch.flip(torch.eye(3, dtype=P.dtype), [0])
+    q, r = torch.linalg.qr((flip @ m).transpose(-1, -2))
+    k = flip @ r.transpose(-1, -2) @ flip
+    rot = flip @ q.transpose(-1, -2)
+    sign = torch.diag_embed(torch.sign(torch.diagonal(k, dim1=-2, dim2=-1)))
+    k = k @ sign
+    rot = sign @ rot
+    det = torch.linalg.det(rot)
+    rot = rot * det[..., None, None]
+    scale = k[..., 2:3, 2:3]
+    t = torch.linalg.solve(k, P[..., 3:]).squeeze(-1) * det[..., None]
+    k = k / scale
+    return k, rot, t
