@@ -14,7 +14,9 @@ def test_info_describes_the_bundled_walk(capsys):
     assert "knee_l: LeftLeg" in out
 
 
-@pytest.mark.parametrize(("content", "message"), [(None, "No such file"), ("HIERARCHY\nROOT a\n{\n", "no MOTION block")])
+@pytest.mark.parametrize(
+    ("content", "message"), [(None, "No such file"), ("HIERARCHY\nROOT a\n{\n", "no MOTION block")]
+)
 def test_info_fails_with_one_line_reason(tmp_path, capsys, content, message):
     path = tmp_path / "x.bvh"
     if content is not None:
