@@ -70,9 +70,8 @@ def joint_error_3d(joints_true: Tensor, joints_est: Tensor, height: float | Tens
 def joint_error_2d(joints_true: Tensor, joints_est: Tensor, height: float | Tensor) -> Tensor:
     """Eq. 37: mean joint distance without depth (the first two coordinates) over body
     height. ``(..., n, 2 or 3)`` -> ``(...)``."""
-    return (joints_est[..., :2] - joints_true[..., :2]).norm(dim=-1).mean(-1) / torch.as_tensor(
-        height
-    )
+    error = (joints_est[..., :2] - joints_true[..., :2]).norm(dim=-1).mean(-1)
+    return error / _as(height, joints_true)
 
 
 def correspondence_error(
