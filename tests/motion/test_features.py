@@ -94,7 +94,7 @@ def test_video_errors(tmp_path):
         read_video(tmp_path / "missing.mp4")
     bad = tmp_path / "bad.mp4"
     bad.write_bytes(b"not a video")
-    with pytest.raises(VideoError, match="bad.mp4"):
+    with pytest.raises(VideoError, match=r"bad\.mp4"):
         read_video(bad)
 
 
