@@ -44,3 +44,8 @@ def test_planar_arm_factor_densities_are_consistent():
         2 * torch.pi * 0.02**2
     )  # times the 2-D position normaliser
     assert abs(mass_theta.item() - 1.0) < 1e-3
+
+
+def test_render_walk_writes_the_readme_picture(tmp_path):
+    out = _load("render_walk").main(tmp_path / "walk.png")
+    assert out.stat().st_size > 10_000

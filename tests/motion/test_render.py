@@ -23,17 +23,28 @@ F64 = torch.float64
 
 def _ortho(scale=100.0, size=200):
     k = torch.tensor([[[scale, 0, size / 2], [0, scale, size / 2], [0, 0, 1]]], dtype=F64)
-    return CameraRig(k, torch.eye(3, dtype=F64)[None], torch.tensor([[0, 0, 5.0]], dtype=F64),
-                     torch.zeros(1, 5, dtype=F64), torch.tensor([[size, size]], dtype=F64), ["o"], orthographic=True)
+    return CameraRig(
+        k,
+        torch.eye(3, dtype=F64)[None],
+        torch.tensor([[0, 0, 5.0]], dtype=F64),
+        torch.zeros(1, 5, dtype=F64),
+        torch.tensor([[size, size]], dtype=F64),
+        ["o"],
+        orthographic=True,
+    )
 
 
-@pytest.mark.parametrize(("r1", "r2", "length"), [(20.0, 20.0, 80.0), (25.0, 12.0, 90.0), (8.0, 18.0, 60.0)])
+@pytest.mark.parametrize(
+    ("r1", "r2", "length"), [(20.0, 20.0, 80.0), (25.0, 12.0, 90.0), (8.0, 18.0, 60.0)]
+)
 def test_orthographic_capsule_area_is_analytic(r1, r2, length):
     """A 3-D tapered capsule seen orthographically: pixel count vs the exact 2-D area,
     within 0.5 % (rasterisation error of a ~6,000-12,000 px shape)."""
     rig = _ortho(scale=1.0, size=300)  # 1 px per metre unit
     seg = torch.tensor([[[-length / 2, 10.0, 0.0], [length / 2, -5.0, 0.3]]], dtype=F64)
-    seg[0, 1, :2] = seg[0, 0, :2] + length * torch.nn.functional.normalize(seg[0, 1, :2] - seg[0, 0, :2], dim=0)
+    seg[0, 1, :2] = seg[0, 0, :2] + length * torch.nn.functional.normalize(
+        seg[0, 1, :2] - seg[0, 0, :2], dim=0
+    )
     parts = project_parts(rig, seg, torch.tensor([[r1, r2]], dtype=F64))
     area = silhouette(parts, 300, 300)[0].sum().item()
     assert area == pytest.approx(capsule_area(r1, r2, length), rel=0.005)
@@ -51,10 +62,15 @@ def test_sdf_is_exact_distance_for_round_capsules():
 def test_depth_order_when_one_part_passes_behind_another():
     rig = _ortho(scale=100.0)
     # part 0 horizontal at depth z = +0.5 (farther), part 1 vertical at z = -0.5 (nearer)
-    seg = torch.tensor([[[-0.6, 0.0, 0.5], [0.6, 0.0, 0.5]], [[0.0, -0.6, -0.5], [0.0, 0.6, -0.5]]], dtype=F64)
+    seg = torch.tensor(
+        [[[-0.6, 0.0, 0.5], [0.6, 0.0, 0.5]], [[0.0, -0.6, -0.5], [0.0, 0.6, -0.5]]], dtype=F64
+    )
     radii = torch.tensor([[0.1, 0.1], [0.1, 0.1]], dtype=F64)
-    labels, depth = label_map(project_parts(rig, seg, radii)[0], 200, 200) if False else label_map(
-        _first(project_parts(rig, seg, radii)), 200, 200)
+    labels, depth = (
+        label_map(project_parts(rig, seg, radii)[0], 200, 200)
+        if False
+        else label_map(_first(project_parts(rig, seg, radii)), 200, 200)
+    )
     assert labels[100, 100] == 1  # the crossing shows the nearer part
     assert labels[100, 40] == 0 and labels[40, 100] == 1 and labels[5, 5] == -1
     assert math.isinf(depth[5, 5])
@@ -109,10 +125,16 @@ def test_part_hypotheses_match_full_renders():
     k = 6
     hyp = torch.tensor([[0.0, -0.25, 0.0], [0.0, 0.25, 0.0]], dtype=F64).expand(k, 2, 3).clone()
     hyp[..., :2] += 0.1 * torch.randn(k, 1, 2, generator=g, dtype=F64)
-    hyp[..., 2] = torch.tensor([-0.5, 0.5, -0.5, 0.5, -0.5, 0.5], dtype=F64)[:, None]  # in front / behind
+    hyp[..., 2] = torch.tensor([-0.5, 0.5, -0.5, 0.5, -0.5, 0.5], dtype=F64)[
+        :, None
+    ]  # in front / behind
     hyp_parts = project_parts(rig, hyp.unsqueeze(1), torch.tensor([[0.06, 0.05]], dtype=F64))
-    hyp_one = ProjectedParts(hyp_parts.ends[:, 0, 0], hyp_parts.radii[:, 0, 0], hyp_parts.depth[:, 0, 0])
+    hyp_one = ProjectedParts(
+        hyp_parts.ends[:, 0, 0], hyp_parts.radii[:, 0, 0], hyp_parts.depth[:, 0, 0]
+    )
     covered, visible, origin = render_part_hypotheses(hyp_one, base_depth, crop=80)
+    assert not (visible & ~covered).any()
+    assert visible[1].sum() < covered[1].sum()  # hypothesis 1 is behind the rest: partly hidden
     for i in range(k):
         both = torch.cat([rest, hyp[i : i + 1]], 0)
         radii = torch.tensor([[0.08, 0.08], [0.06, 0.05]], dtype=F64)
@@ -130,7 +152,9 @@ def test_part_hypotheses_match_full_renders():
 
 def test_outline_points_lie_on_the_boundary_and_occlusion_hides_some():
     rig = _ortho(scale=100.0)
-    seg = torch.tensor([[[-0.6, 0.0, 0.5], [0.6, 0.0, 0.5]], [[0.0, -0.6, -0.5], [0.0, 0.6, -0.5]]], dtype=F64)
+    seg = torch.tensor(
+        [[[-0.6, 0.0, 0.5], [0.6, 0.0, 0.5]], [[0.0, -0.6, -0.5], [0.0, 0.6, -0.5]]], dtype=F64
+    )
     radii = torch.tensor([[0.1, 0.1], [0.1, 0.1]], dtype=F64)
     parts = _first(project_parts(rig, seg, radii))
     pts, _ = outline_points(parts, per_part=64)
@@ -139,7 +163,9 @@ def test_outline_points_lie_on_the_boundary_and_occlusion_hides_some():
         assert sdf.abs().max() < 1e-9
     labels, _ = label_map(parts, 200, 200)
     _, visible = outline_points(parts, per_part=64, labels=labels)
-    assert visible[1].all() and not visible[0].all()  # the front part hides some of the back's outline
+    assert (
+        visible[1].all() and not visible[0].all()
+    )  # the front part hides some of the back's outline
 
 
 def test_intensity_colours_labels():
