@@ -1,0 +1,127 @@
+"""Synthetic sequences: ground truth is self-consistent and the CLI writes the documented format."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from motion.__main__ import main
+from motion.cameras import CameraRig
+from motion.synth import SynthConfig, load_sequence, save_sequence, synthesize
+from tests.conftest import SHARED_DATA, requires_shared_data
+from tests.motion.test_bvh import BUNDLED
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    cfg = SynthConfig(
+        cameras=2,
+        size=[64, 48],
+        focal_px=120,
+        articulation={"LeftLeg": 20, "RightArm": 30},
+        yaw_deg=40,
+        path_m=[0.5, 0.0, 0.0],
+        body_scale=1.1,
+        replace=[0.4, 0.5],
+        noise_px=2.0,
+        seed=3,
+    )
+    return synthesize(BUNDLED, cfg)
+
+
+def test_reprojecting_true_3d_joints_gives_the_stored_2d_joints(sequence):
+    a = sequence.arrays
+    c = a["K"].shape[0]
+    rig = CameraRig(
+        torch.from_numpy(a["K"]),
+        torch.from_numpy(a["R"]),
+        torch.from_numpy(a["t"]),
+        torch.zeros(c, 5, dtype=torch.float64),
+        torch.tensor([[64, 48]] * c, dtype=torch.float64),
+        sequence.meta["cameras"],
+    )
+    uv, depth = rig.project(torch.from_numpy(a["joints3d"]))
+    np.testing.assert_allclose(uv.transpose(0, 1).numpy(), a["joints2d"], atol=1e-9)
+    assert (depth > 0).all()
+    noise = a["joints2d_noisy"] - a["joints2d"]
+    assert abs(noise.std() - 2.0) < 0.1
+
+
+def test_time_warp_is_monotone_smooth_and_spans_the_reference(sequence):
+    a, m = sequence.arrays, sequence.meta
+    c = a["C_true"]
+    assert c[0] == 0 and c[-1] == m["num_reference_frames"] - 1
+    steps = np.diff(c)
+    nominal = m["reference_rate_hz"] / m["video_rate_hz"]
+    assert steps.min() >= 0 and steps.max() <= np.ceil(nominal * 1.3) + 1  # speed within 1 +- 0.3
+    assert steps.std() > 0.2  # non-linear
+    rep = a["replaced"]
+    assert rep.sum() == int(0.5 * len(c)) - int(0.4 * len(c))
+    assert (a["C_shown"][~rep] == c[~rep]).all() and (a["C_shown"][rep] > c[rep]).all()
+
+
+def test_articulation_body_size_and_images_are_consistent(sequence):
+    a = sequence.arrays
+    names = sequence.meta["joint_names"]
+    leg = names.index("LeftLeg")
+    assert np.abs(a["A_deg"][:, leg]).max() <= 20 + 1e-9 and np.abs(a["A_deg"][:, leg]).max() > 5
+    assert np.abs(a["A_deg"][:, names.index("Head")]).max() == 0
+    assert (a["silhouettes"] == (a["labels"] >= 0)).all()
+    assert a["silhouettes"].mean() > 0.02
+    assert a["edges"].any() and a["frames"].dtype == np.uint8
+    # the pelvis projects onto the silhouette in (nearly) every frame it is inside the image
+    uv = np.round(a["joints2d"][:, :, 0]).astype(int)
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] < 64) & (uv[..., 1] >= 0) & (uv[..., 1] < 48)
+    cams, frames = np.nonzero(inside)
+    on = a["silhouettes"][cams, frames, uv[cams, frames, 1], uv[cams, frames, 0]]
+    assert on.mean() > 0.95
+
+
+def test_save_and_load_round_trip(sequence, tmp_path):
+    save_sequence(sequence, tmp_path)
+    back = load_sequence(tmp_path)
+    assert back.meta == json.loads(json.dumps(sequence.meta))
+    for k, v in sequence.arrays.items():
+        assert np.array_equal(back.arrays[k], v), k
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+def test_a_different_performer_as_the_student():
+    seq = synthesize(
+        BUNDLED,
+        SynthConfig(size=[32, 24], focal_px=60),
+        student=SHARED_DATA / "bvh" / "cmu_cgspeed" / "07_01.bvh",
+    )
+    assert (seq.arrays["C_true"] == -1).all()  # no ground-truth correspondence across performers
+    assert seq.meta["student"].endswith("07_01.bvh")
+
+
+def test_cli_synth_and_its_errors(tmp_path, capsys):
+    out = tmp_path / "seq"
+    assert (
+        main(
+            [
+                "synth",
+                "--reference",
+                str(BUNDLED),
+                "--out",
+                str(out),
+                "size=32x24",
+                "focal_px=60",
+                "fps=30",
+                "articulation=LeftArm:10",
+                "replace=0.4,0.5",
+                "videos=true",
+            ]
+        )
+        == 0
+    )
+    meta = json.loads((out / "sequence.json").read_text())
+    assert meta["video_rate_hz"] == 30.0 and (out / "cam1.avi").exists()
+    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "colour=red"]) == 1
+    assert "unknown setting 'colour'" in capsys.readouterr().err
+    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "warp=1.5"]) == 1
+    assert "warp must be in [0, 1)" in capsys.readouterr().err
+    assert main(["synth", "--reference", str(tmp_path / "none.bvh"), "--out", str(out)]) == 1
