@@ -25,6 +25,7 @@ __all__ = [
     "distance_to_edges",
     "edges",
     "foreground_masks",
+    "read_camera_videos",
     "read_video",
     "select_person",
 ]
@@ -70,6 +71,40 @@ def read_video(
             f"{path}: no frames decoded (from frame {start}, {index} frames in the file)"
         )
     return np.stack(frames)
+
+
+def read_camera_videos(
+    paths, size_tolerance: int = 16, expected_sizes=None, **kwargs
+) -> list[np.ndarray]:
+    """Read one synchronised video per camera and check that they fit together.
+
+    Args:
+        paths: one video per camera.
+        size_tolerance: pixels by which a video may differ from ``expected_sizes`` (encoders
+            pad: the pose2sim demo's cam01 is 1080 px wide where its calibration says 1088).
+        expected_sizes: optional ``(C, 2)`` (width, height) per camera, e.g. ``CameraRig.size``.
+        **kwargs: passed to :func:`read_video` (start, count, step, scale).
+
+    Raises:
+        VideoError: naming the cameras whose frame counts or sizes disagree.
+    """
+    videos = [read_video(p, **kwargs) for p in paths]
+    counts = [len(v) for v in videos]
+    if len(set(counts)) > 1:
+        detail = ", ".join(f"{Path(p).name}: {n}" for p, n in zip(paths, counts, strict=True))
+        raise VideoError(
+            f"cameras have different frame counts ({detail}); they must be synchronised"
+        )
+    if expected_sizes is not None:
+        scale = kwargs.get("scale", 1.0)
+        for p, v, size in zip(paths, videos, np.asarray(expected_sizes), strict=True):
+            got = np.array([v.shape[2], v.shape[1]]) / scale
+            if np.abs(got - size).max() > size_tolerance:
+                raise VideoError(
+                    f"{p}: frames are {int(got[0])} x {int(got[1])} px but the calibration says "
+                    f"{int(size[0])} x {int(size[1])}"
+                )
+    return videos
 
 
 def _backend(backend: str, x: Tensor) -> str:

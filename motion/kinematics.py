@@ -28,6 +28,7 @@ __all__ = [
     "SkeletonError",
     "euler_to_matrix",
     "forward_kinematics",
+    "local_from_global",
     "local_rotations",
     "matrix_to_euler",
 ]
@@ -299,3 +300,17 @@ def forward_kinematics(
             -1
         )
     return FKResult(g_pos, g_rot)
+
+
+def local_from_global(skeleton: Skeleton, global_rotations: Tensor) -> Tensor:
+    """Relative (local) joint rotations from global part orientations: ``R_j = G_parent^T G_j``
+    (the root's local rotation is its global one). This is how articulation differences A are
+    read off estimated part poses; :func:`matrix_to_euler` turns them into BVH angles.
+
+    Shapes: ``(..., J, 3, 3)`` -> ``(..., J, 3, 3)``.
+    """
+    parents = skeleton.parents.clamp_min(0)
+    parent_rot = global_rotations[..., parents, :, :]
+    local = parent_rot.transpose(-1, -2) @ global_rotations
+    root = skeleton.parents < 0
+    return torch.where(root[:, None, None], global_rotations, local)

@@ -12,6 +12,7 @@ from motion.features import (
     distance_to_edges,
     edges,
     foreground_masks,
+    read_camera_videos,
     read_video,
     select_person,
 )
@@ -103,3 +104,32 @@ def test_video_errors(tmp_path):
 def test_reads_the_shared_video():
     frames = read_video(SHARED_DATA / "video" / "pose2sim_balancing_trial" / "cam01.mp4", count=5)
     assert frames.shape == (5, 1920, 1080, 3) and frames.dtype == np.uint8
+
+
+def test_camera_videos_must_agree(tmp_path):
+    from motion.draw import write_video
+
+    frames = [np.full((24, 32, 3), 100, dtype=np.uint8)] * 4
+    a = write_video(tmp_path / "a.avi", frames, 10)
+    b = write_video(tmp_path / "b.avi", frames[:3], 10)
+    with pytest.raises(VideoError, match=r"different frame counts \(a.avi: 4, b.avi: 3\)"):
+        read_camera_videos([a, b])
+    with pytest.raises(VideoError, match="frames are 32 x 24 px but the calibration says 64 x 48"):
+        read_camera_videos([a], expected_sizes=[[64, 48]])
+    assert len(read_camera_videos([a, a], expected_sizes=[[32, 24], [30, 24]])) == 2
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+def test_pose2sim_videos_fit_their_calibration():
+    from motion.cameras import load_pose2sim_calibration
+
+    folder = SHARED_DATA / "video" / "pose2sim_balancing_trial"
+    rig = load_pose2sim_calibration(folder / "calibration" / "Calib_qualisys.toml")
+    videos = read_camera_videos(
+        [folder / f"cam0{c}.mp4" for c in range(1, 5)],
+        expected_sizes=rig.size.numpy(),
+        count=3,
+        scale=0.25,
+    )
+    assert [v.shape[0] for v in videos] == [3, 3, 3, 3]

@@ -14,11 +14,12 @@ from motion.kinematics import (
     SkeletonError,
     euler_to_matrix,
     forward_kinematics,
+    local_from_global,
     local_rotations,
     matrix_to_euler,
 )
 from tests.conftest import SHARED_DATA, requires_shared_data
-from tests.motion.test_bvh import BUNDLED
+from tests.motion.test_bvh import BUNDLED, SHARED_FILES
 
 ORDERS = ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"]
 
@@ -173,3 +174,34 @@ def test_skeleton_errors():
         forward_kinematics(skel, torch.zeros(2, 30, 3, 3), torch.zeros(2, 3))
     with pytest.raises(KeyError, match="no joint 'Tail'"):
         skel.index("Tail")
+
+
+def test_global_to_local_round_trip_and_euler_angles():
+    bvh, skel, motion = _walk(slice(1, 20))
+    rot, root = local_rotations(skel, motion, bvh.channels)
+    fk = forward_kinematics(skel, rot, root)
+    local = local_from_global(skel, fk.rotations)
+    torch.testing.assert_close(local, rot)
+    # back to the file's own angles (degrees) for a ZYX joint
+    j = skel.index("LeftLeg")
+    angles = torch.rad2deg(matrix_to_euler(local[:, j], skel.rotation_orders[j]))
+    col = sum(len(c) for c in bvh.channels[:j])
+    torch.testing.assert_close(angles, motion[:, col : col + 3])
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+@pytest.mark.parametrize("name", [f for f, *_ in SHARED_FILES])
+def test_every_shared_file_animates(name):
+    """All frames through FK: finite, bone lengths preserved, a plausible body height."""
+    bvh = read_bvh(SHARED_DATA / "bvh" / name)
+    skel = Skeleton.from_bvh(bvh)
+    fk = forward_kinematics(
+        skel, *local_rotations(skel, torch.from_numpy(bvh.motion), bvh.channels)
+    )
+    assert torch.isfinite(fk.positions).all()
+    child = torch.arange(1, skel.num_joints)
+    bones = (fk.positions[:, child] - fk.positions[:, skel.parents[child]]).norm(dim=-1)
+    torch.testing.assert_close(bones, skel.offsets[child].norm(dim=-1).expand_as(bones))
+    span = (fk.positions[..., 1].amax(-1) - fk.positions[..., 1].amin(-1)).median()
+    assert 0.9 < span < 2.2, span
