@@ -28,6 +28,7 @@ __all__ = [
     "read_camera_videos",
     "read_video",
     "select_person",
+    "track_person",
 ]
 
 
@@ -246,3 +247,23 @@ def select_person(
     else:
         best = min(candidates, key=lambda i: float(np.hypot(*(centroids[i] - np.asarray(near)))))
     return labels == best
+
+
+def track_person(masks: np.ndarray, start: tuple[float, float] | None = None, min_area: int = 50) -> np.ndarray:
+    """Follow one person through foreground masks while others are in view.
+
+    Frame by frame, keep the component nearest the previous frame's centroid (the largest
+    component, or the one nearest ``start = (x, y)``, in the first frame). A frame where
+    nothing is large enough keeps the last centroid.
+
+    Shapes: ``(F, H, W)`` bool -> ``(F, H, W)`` bool.
+    """
+    out = np.zeros_like(masks, dtype=bool)
+    near = start
+    for i, m in enumerate(masks):
+        keep = select_person(m, near=near, min_area=min_area)
+        out[i] = keep
+        if keep.any():
+            ys, xs = np.nonzero(keep)
+            near = (float(xs.mean()), float(ys.mean()))
+    return out

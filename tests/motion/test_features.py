@@ -15,6 +15,7 @@ from motion.features import (
     read_camera_videos,
     read_video,
     select_person,
+    track_person,
 )
 from tests.conftest import SHARED_DATA, requires_shared_data
 
@@ -133,3 +134,13 @@ def test_pose2sim_videos_fit_their_calibration():
         scale=0.25,
     )
     assert [v.shape[0] for v in videos] == [3, 3, 3, 3]
+
+
+def test_track_person_keeps_the_chosen_one_when_another_is_larger():
+    masks = np.zeros((10, 40, 60), dtype=bool)
+    for f in range(10):
+        masks[f, 5:15, 5 + 2 * f : 12 + 2 * f] = True  # the student, small, moving right
+        masks[f, 20:38, 40 - f : 55 - f] = True  # a bystander, larger, moving left
+    tracked = track_person(masks, start=(8.0, 10.0))
+    assert tracked[:, 5:15].any(axis=(1, 2)).all()
+    assert not tracked[:, 20:38].any()
