@@ -249,7 +249,9 @@ def select_person(
     return labels == best
 
 
-def track_person(masks: np.ndarray, start: tuple[float, float] | None = None, min_area: int = 50) -> np.ndarray:
+def track_person(
+    masks: np.ndarray, start: tuple[float, float] | None = None, min_area: int = 50
+) -> np.ndarray:
     """Follow one person through foreground masks while others are in view.
 
     Frame by frame, keep the component nearest the previous frame's centroid (the largest

@@ -1,0 +1,271 @@
+"""Global pose from 2-D joints (the proposal's Section 5.1.1), batched over many problems.
+
+Given 3-D joints ``X`` in the body frame and their pixels ``x`` in a calibrated pinhole
+camera, find ``R, t`` with ``x ~ K (R X + t)``: a linear DLT estimate of ``[R | t]`` (in
+normalised image coordinates, ``P[2, 3]`` fixed positive so depths are positive, then the
+nearest proper rotation by a 3x3 SVD), refined by Levenberg-Marquardt on the 6 pose
+parameters (left-multiplied rotation increment, translation) with analytic Jacobians,
+optionally from several starts. Everything is one batched tensor program over ``B``.
+
+Conventions: OpenCV camera frame; pixels; rotation vectors in radians; metres.
+Shapes: ``B`` problems, ``n`` joints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from torch import Tensor
+
+__all__ = ["PoseResult", "affine_pose", "dlt_pose", "refine_pose", "solve_pose"]
+
+
+@dataclass
+class PoseResult:
+    """R ``(B, 3, 3)``, t ``(B, 3)``, cost ``(B,)`` = mean squared pixel residual, iterations run."""
+
+    R: Tensor
+    t: Tensor
+    cost: Tensor
+    iterations: int
+
+
+def _check(points3d: Tensor, points2d: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    if points3d.dim() == 2:
+        points3d = points3d.unsqueeze(0)
+    if points2d.dim() == 2:
+        points2d = points2d.unsqueeze(0)
+    if (
+        points3d.shape[-1] != 3
+        or points2d.shape[-1] != 2
+        or points3d.shape[-2] != points2d.shape[-2]
+    ):
+        raise ValueError(
+            f"need points3d (B, n, 3) and points2d (B, n, 2) with the same n; got "
+            f"{tuple(points3d.shape)} and {tuple(points2d.shape)}"
+        )
+    if points3d.shape[-2] < 6:
+        raise ValueError(f"pose from 2-D joints needs at least 6 joints; got {points3d.shape[-2]}")
+    if not (torch.isfinite(points3d).all() and torch.isfinite(points2d).all()):
+        raise ValueError("points contain NaN or inf")
+    b = max(points3d.shape[0], points2d.shape[0])
+    K = K.to(points2d.dtype)
+    if K.shape == (3, 3):
+        K = K.expand(b, 3, 3)
+    return points3d.expand(b, -1, -1), points2d.expand(b, -1, -1), K
+
+
+def dlt_pose(points3d: Tensor, points2d: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Linear pose: DLT of ``[R | t]`` in normalised coordinates, positive depth, nearest rotation.
+
+    Shapes: points3d ``(B, n, 3)``, points2d ``(B, n, 2)``, K ``(3, 3)`` or ``(B, 3, 3)`` ->
+    R ``(B, 3, 3)``, t ``(B, 3)``.
+    """
+    x3, x2, K = _check(points3d, points2d, K)
+    ones = torch.ones_like(x2[..., :1])
+    norm = (
+        torch.linalg.solve(K.unsqueeze(1), torch.cat([x2, ones], -1).unsqueeze(-1)).squeeze(-1)
+    )[..., :2]
+    # centre and scale the 3-D points for conditioning; undone below
+    mean = x3.mean(1, keepdim=True)
+    scale = (x3 - mean).norm(dim=-1).mean(1, keepdim=True).unsqueeze(-1).clamp_min(1e-9)
+    xs = (x3 - mean) / scale
+    h = torch.cat([xs, torch.ones_like(xs[..., :1])], -1)  # (B, n, 4)
+    zeros = torch.zeros_like(h)
+    rows_u = torch.cat([h, zeros, -norm[..., :1] * h], -1)
+    rows_v = torch.cat([zeros, h, -norm[..., 1:] * h], -1)
+    a = torch.cat([rows_u, rows_v], 1)  # (B, 2n, 12)
+    _, _, vh = torch.linalg.svd(a, full_matrices=False)
+    p = vh[:, -1].reshape(-1, 3, 4)
+    # depth of the (normalised) centroid is P[2, 3]: make it positive
+    p = p * torch.sign(p[:, 2, 3]).clamp(min=0).mul(2).sub(1)[:, None, None]
+    u, s, wh = torch.linalg.svd(p[:, :, :3])
+    det = torch.linalg.det(u @ wh)
+    d = torch.ones_like(s)
+    d[:, 2] = det
+    r = u @ torch.diag_embed(d) @ wh
+    return r, _translation_given_rotation(r, x3, norm)
+
+
+def affine_pose(points3d: Tensor, points2d: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Weak-perspective pose: a least-squares affine camera on centred points, its rows
+    orthonormalised (2x3 SVD), the depth from its scale; t then re-solved exactly for
+    perspective. Stable where the DLT is not (a body far from the camera is nearly flat in
+    depth). Shapes as :func:`dlt_pose`."""
+    x3, x2, K = _check(points3d, points2d, K)
+    ones = torch.ones_like(x2[..., :1])
+    norm = (
+        torch.linalg.solve(K.unsqueeze(1), torch.cat([x2, ones], -1).unsqueeze(-1)).squeeze(-1)
+    )[..., :2]
+    xc = x3 - x3.mean(1, keepdim=True)
+    nc = norm - norm.mean(1, keepdim=True)
+    a = torch.linalg.lstsq(xc, nc).solution.transpose(1, 2)  # (B, 2, 3): nc ~ A xc
+    u, _s, vh = torch.linalg.svd(a, full_matrices=False)  # (B,2,2), (B,2), (B,2,3)
+    r12 = u @ vh
+    r3 = torch.linalg.cross(r12[:, 0], r12[:, 1])
+    r = torch.cat([r12, r3.unsqueeze(1)], 1)
+    return r, _translation_given_rotation(r, x3, norm)
+
+
+def _translation_given_rotation(r: Tensor, x3: Tensor, norm: Tensor) -> Tensor:
+    """Least-squares t for a fixed R from normalised image points: each point gives
+    ``t_x - x_n t_z = x_n (r3 . X) - r1 . X`` and the same for y -- linear in t, so the
+    DLT's ill-conditioned scale never decides the depth."""
+    rx = x3 @ r.transpose(1, 2)  # (B, n, 3)
+    xn, yn = norm[..., 0], norm[..., 1]
+    one, zero = torch.ones_like(xn), torch.zeros_like(xn)
+    a = torch.cat(
+        [torch.stack([one, zero, -xn], -1), torch.stack([zero, one, -yn], -1)], 1
+    )  # (B, 2n, 3)
+    b = torch.cat([xn * rx[..., 2] - rx[..., 0], yn * rx[..., 2] - rx[..., 1]], 1)  # (B, 2n)
+    return torch.linalg.lstsq(a, b.unsqueeze(-1)).solution.squeeze(-1)
+
+
+def _residuals(r: Tensor, t: Tensor, x3: Tensor, x2: Tensor, K: Tensor):
+    rx = x3 @ r.transpose(1, 2)  # (B, n, 3) rotated points
+    pc = rx + t[:, None]
+    z = pc[..., 2].clamp_min(1e-9)
+    fx, fy, cx, cy, skew = (
+        K[:, 0, 0, None],
+        K[:, 1, 1, None],
+        K[:, 0, 2, None],
+        K[:, 1, 2, None],
+        K[:, 0, 1, None],
+    )
+    u = fx * pc[..., 0] / z + skew * pc[..., 1] / z + cx
+    v = fy * pc[..., 1] / z + cy
+    res = torch.stack([u - x2[..., 0], v - x2[..., 1]], -1)  # (B, n, 2)
+    return res, rx, pc, z
+
+
+def _jacobian(rx: Tensor, pc: Tensor, z: Tensor, K: Tensor) -> Tensor:
+    """d residual / d (delta_omega, delta_t): (B, n, 2, 6), components laid out for einsum."""
+    fx, fy, skew = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 1, None]
+    x, y = pc[..., 0], pc[..., 1]
+    zi = 1.0 / z
+    zero = torch.zeros_like(x)
+    du = torch.stack([fx * zi, skew * zi, -(fx * x + skew * y) * zi * zi], -1)  # (B, n, 3)
+    dv = torch.stack([zero, fy * zi, -fy * y * zi * zi], -1)
+    dproj = torch.stack([du, dv], -2)  # (B, n, 2, 3)
+    # d pc / d delta_omega = -[R X]_x ; d pc / d t = I
+    a, b, c = rx[..., 0], rx[..., 1], rx[..., 2]
+    skew_rx = torch.stack(
+        [
+            torch.stack([zero, -c, b], -1),
+            torch.stack([c, zero, -a], -1),
+            torch.stack([-b, a, zero], -1),
+        ],
+        -2,
+    )  # [R X]_x, (B, n, 3, 3)
+    j_rot = -(dproj @ skew_rx)
+    return torch.cat([j_rot, dproj], -1)
+
+
+def refine_pose(
+    points3d: Tensor,
+    points2d: Tensor,
+    K: Tensor,
+    R: Tensor,
+    t: Tensor,
+    iterations: int = 30,
+    tol: float = 1e-12,
+) -> PoseResult:
+    """Levenberg-Marquardt on the 6 pose parameters, batched; each problem keeps its own
+    damping and only accepts steps that lower its cost (a backtracking line search on the
+    damping). Shapes as :func:`solve_pose`."""
+    x3, x2, K = _check(points3d, points2d, K)
+    r, t = R.clone(), t.clone()
+    res, rx, pc, z = _residuals(r, t, x3, x2, K)
+    cost = res.square().sum((-1, -2))
+    lam = torch.full_like(cost, 1e-3)
+    eye = torch.eye(6, dtype=x2.dtype, device=x2.device)
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported
+        j = _jacobian(rx, pc, z, K).reshape(x2.shape[0], -1, 6)
+        jtj = j.transpose(1, 2) @ j
+        g = (j.transpose(1, 2) @ res.reshape(x2.shape[0], -1, 1)).squeeze(-1)
+        diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
+        step = torch.linalg.solve(
+            jtj + lam[:, None, None] * (eye * diag.unsqueeze(-1) + 1e-12 * eye), -g
+        )
+        r_new = axis_angle_to_rotation_matrix(step[:, :3]) @ r
+        t_new = t + step[:, 3:]
+        res_new, rx_new, pc_new, z_new = _residuals(r_new, t_new, x3, x2, K)
+        cost_new = res_new.square().sum((-1, -2))
+        better = (cost_new < cost) & torch.isfinite(cost_new) & (pc_new[..., 2] > 0).all(-1)
+        sel = better[:, None, None]
+        r = torch.where(sel, r_new, r)
+        t = torch.where(better[:, None], t_new, t)
+        res = torch.where(sel, res_new, res)
+        rx = torch.where(sel, rx_new, rx)
+        pc = torch.where(sel, pc_new, pc)
+        z = torch.where(better[:, None], z_new, z)
+        improvement = (cost - cost_new).clamp_min(0)
+        cost = torch.where(better, cost_new, cost)
+        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-9, 1e9)
+        if (improvement <= tol * cost.clamp_min(1e-30)).all() and (
+            ~better | (improvement < tol)
+        ).all():
+            break
+    return PoseResult(r, t, cost / x2.shape[1], it)
+
+
+def solve_pose(
+    points3d: Tensor,
+    points2d: Tensor,
+    K: Tensor,
+    iterations: int = 30,
+    starts: int = 1,
+    generator: torch.Generator | None = None,
+) -> PoseResult:
+    """Pose from 2-D joints: LM from a weak-perspective start and from the DLT, the lower
+    cost kept; with ``starts > 1`` also LM from the first start
+    rotated by ``starts - 1`` fixed rotations (90-180 degrees about spread axes, plus the
+    depth-flipped mirror pose), keeping each problem's lowest cost.
+
+    Args:
+        points3d: ``(B, n, 3)`` metres (or ``(n, 3)``), n >= 6.
+        points2d: ``(B, n, 2)`` pixels, undistorted.
+        K: ``(3, 3)`` or ``(B, 3, 3)``.
+
+    Returns:
+        :class:`PoseResult`.
+    """
+    x3, x2, K = _check(points3d, points2d, K)
+    r0, t0 = affine_pose(x3, x2, K)
+    best = refine_pose(x3, x2, K, r0, t0, iterations)
+    r_d, t_d = dlt_pose(x3, x2, K)
+    cand = refine_pose(x3, x2, K, r_d, t_d, iterations)
+    take = cand.cost < best.cost
+    best = PoseResult(
+        torch.where(take[:, None, None], cand.R, best.R),
+        torch.where(take[:, None], cand.t, best.t),
+        torch.where(take, cand.cost, best.cost),
+        max(best.iterations, cand.iterations),
+    )
+    if starts > 1:
+        g = generator or torch.Generator().manual_seed(0)
+        axes = torch.nn.functional.normalize(
+            torch.randn(starts - 1, 3, generator=g, dtype=x2.dtype), dim=-1
+        )
+        angles = torch.linspace(torch.pi / 2, torch.pi, starts - 1, dtype=x2.dtype)
+        for rot in axis_angle_to_rotation_matrix(axes * angles[:, None]):
+            # rotate about the body's centroid so the start stays in front of the camera
+            centre = x3.mean(1)
+            r_s = r0 @ rot
+            t_s = (
+                t0
+                + (r0 @ centre.unsqueeze(-1)).squeeze(-1)
+                - (r_s @ centre.unsqueeze(-1)).squeeze(-1)
+            )
+            cand = refine_pose(x3, x2, K, r_s, t_s, iterations)
+            take = cand.cost < best.cost
+            best = PoseResult(
+                torch.where(take[:, None, None], cand.R, best.R),
+                torch.where(take[:, None], cand.t, best.t),
+                torch.where(take, cand.cost, best.cost),
+                max(best.iterations, cand.iterations),
+            )
+    return best
