@@ -36,7 +36,7 @@ from motion.kinematics import (
 )
 from motion.render import ProjectedParts, label_map, project_parts
 
-__all__ = ["Sequence", "SynthConfig", "load_sequence", "save_sequence", "synthesize"]
+__all__ = ["Sequence", "SynthConfig", "load_sequence", "save_sequence", "synthesize", "time_warp"]
 
 
 @dataclass
@@ -108,6 +108,21 @@ class Sequence:
     meta: dict
 
 
+def time_warp(
+    num_video: int, num_ref: int, strength: float, generator: torch.Generator
+) -> torch.Tensor:
+    """A smooth non-linear monotone correspondence ``C`` (``(T',)`` long) from ``num_video``
+    frames onto ``[0, num_ref - 1]``, both ends fixed: ``w(u) = u + s sin(2 pi k u) / (2 pi k)``
+    with a random ``k`` in [1, 2], so playback speed stays within ``1 +- strength``."""
+    if not 0 <= strength < 1:
+        raise ValueError(f"warp strength must be in [0, 1); got {strength}")
+    u = torch.linspace(0, 1, num_video, dtype=torch.float64)
+    bend = 1 + float(torch.rand(1, generator=generator))
+    warp = u + strength * torch.sin(2 * math.pi * bend * u) / (2 * math.pi * bend)
+    warp = (warp - warp[0]) / (warp[-1] - warp[0]).clamp_min(1e-12)
+    return torch.cummax((warp * (num_ref - 1)).round().long(), 0).values
+
+
 def _drop_reference_pose(bvh: BVH) -> np.ndarray:
     motion = bvh.motion
     rot0 = motion[0, bvh.rotation_columns()]
@@ -175,11 +190,7 @@ def synthesize(
 
     # C: smooth non-linear monotone warp from video frames to source frames
     u = torch.linspace(0, 1, num_video, dtype=torch.float64)
-    bend = 1 + float(torch.rand(1, generator=g))
-    # w(u) = u + s sin(2 pi k u) / (2 pi k): speed 1 + s cos(.) stays in [1 - s, 1 + s]
-    warp = u + cfg.warp * torch.sin(2 * math.pi * bend * u) / (2 * math.pi * bend)
-    warp = (warp - warp[0]) / (warp[-1] - warp[0])
-    c_true = torch.cummax((warp * (num_ref - 1)).round().long(), 0).values
+    c_true = time_warp(num_video, num_ref, cfg.warp, g)
     shown = c_true.clone()
     replaced = torch.zeros(num_video, dtype=torch.bool)
     if cfg.replace is not None:

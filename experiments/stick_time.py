@@ -1,0 +1,154 @@
+"""Temporal correspondence of stick figures (the proposal's Section 5.1.2, Fig. 12).
+
+The 3-D reference is a BVH's 20 body landmarks (``motion.bodyparts`` roles) at 120 Hz; the
+2-D input is the same motion through a smooth non-linear time warp (and a frame-rate change),
+seen by a perspective camera, with uniform joint noise, optionally with frames 40 %-50 % of
+the input replaced by the frames that follow them (the proposal's corruption).
+``d(t', t) = (1/n) sum_i ||G X_it - x_it'||^2 / h'^2`` (Eq. 24, normalised by the 2-D
+figure height) with ``G`` the best pose for each pair (``motion.pose``); C by the proposal's
+DTW, chain Viterbi, and the robust chain (bounded cost, slope prior).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from motion.alignment import chain_align, dtw, robust_cost, slope_step_cost
+from motion.bodyparts import BodyModel
+from motion.bvh import read_bvh
+from motion.kinematics import Skeleton, forward_kinematics, local_rotations
+from motion.pose import solve_pose
+from motion.synth import time_warp
+
+BUNDLED = "motion/data/cmu_02_01_walk.bvh"
+
+
+@dataclass
+class StickTimeConfig:
+    """Fields of ``experiments/configs/stick_time.yaml`` (see experiments/README.md)."""
+
+    bvh: str = BUNDLED
+    fps: float = 25.0  # input frame rate (the reference's is read from the BVH)
+    warp: float = 0.3  # largest relative change of playback speed
+    noise: float = 0.018  # uniform 2-D joint noise, fraction of the 2-D figure height
+    corrupt: bool = True
+    camera_distance: float = 5.0
+    max_step: int = 12
+    robust_scale: float = 2.0  # truncation at this many times the median best-match cost
+    slope_weight: float = 0.5  # slope prior weight, in units of the truncation level
+    seed: int = 0
+    out_dir: str = "runs/stick_time"
+    tiny: bool = False
+    methods: list = field(default_factory=lambda: ["dtw", "chain", "robust"])
+
+
+def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
+    bvh = read_bvh(path)
+    skel = Skeleton.from_bvh(bvh)
+    motion = bvh.motion
+    rot0 = motion[0, bvh.rotation_columns()]
+    if len(motion) > 1 and bvh.names[0] == "Hips" and np.array_equal(rot0, np.round(rot0)):
+        motion = motion[1:]  # the cgspeed converter's reference pose
+    fk = forward_kinematics(skel, *local_rotations(skel, torch.from_numpy(motion), bvh.channels))
+    model = BodyModel.from_skeleton(skel)
+    landmarks = model.landmarks(model.skeleton_points(skel, fk))  # (T, R, 3)
+    return landmarks - landmarks[:, :1].mean(0, keepdim=True), bvh.frame_rate
+
+
+def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
+    """Returns (metrics, per-frame columns, plot data)."""
+    g = torch.Generator().manual_seed(cfg.seed)
+    ref, ref_rate = _reference_landmarks(cfg.bvh)
+    if cfg.tiny:
+        ref = ref[: min(len(ref), 120)]
+    num_ref = ref.shape[0]
+    num_video = int((num_ref - 1) * cfg.fps / ref_rate) + 1
+    c_true = time_warp(num_video, num_ref, cfg.warp, g)
+    shown = c_true.clone()
+    inside = torch.zeros(num_video, dtype=torch.bool)
+    if cfg.corrupt:
+        lo, hi = int(0.4 * num_video), int(0.5 * num_video)
+        shown[lo:hi] = c_true[hi : hi + (hi - lo)]
+        inside[lo:hi] = True
+    # camera: perspective, looking at the body from the side at camera_distance, random yaw
+    yaw = float(torch.rand(1, generator=g)) * 2 * math.pi
+    rot = torch.tensor(
+        [[math.cos(yaw), 0, math.sin(yaw)], [0, -1.0, 0], [math.sin(yaw), 0, -math.cos(yaw)]],
+        dtype=torch.float64,
+    )
+    t = torch.tensor([0.0, 0.0, cfg.camera_distance], dtype=torch.float64)
+    k = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
+    pc = ref[shown] @ rot.T + t
+    x2 = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
+    height = float((x2[..., 1].amax(-1) - x2[..., 1].amin(-1)).median())
+    x2 = x2 + (torch.rand(x2.shape, generator=g, dtype=torch.float64) * 2 - 1) * cfg.noise * height
+    # Eq. 24 for every (t', t): one batched pose solve per video frame against all references
+    n = ref.shape[1]
+    cost = torch.empty(num_video, num_ref, dtype=torch.float64)
+    for i in range(num_video):
+        res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
+        cost[i] = res.cost / height**2
+    estimates = {}
+    if "dtw" in cfg.methods:
+        estimates["dtw"] = dtw(cost).choice
+    if "chain" in cfg.methods:
+        estimates["chain"] = chain_align(cost, cfg.max_step, fix_start=True, fix_end=True).path[0]
+    if "robust" in cfg.methods:
+        threshold = cfg.robust_scale * float(cost.amin(-1).median())
+        robust = robust_cost(cost, threshold=max(threshold, 1e-12))
+        slope = (num_ref - 1) / max(num_video - 1, 1)
+        prior = slope_step_cost(
+            cfg.max_step, slope, cfg.slope_weight * float(robust.max())
+        ).double()
+        estimates["robust"] = chain_align(
+            robust, cfg.max_step, fix_start=True, fix_end=True, step_cost=prior
+        ).path[0]
+    metrics: dict[str, float] = {}
+    columns = {
+        "t_video": np.arange(num_video),
+        "c_true": c_true.numpy(),
+        "replaced": inside.numpy().astype(int),
+    }
+    for name, est in estimates.items():
+        err = (est - c_true).abs().double()
+        metrics[f"c_err_mean_{name}"] = float(err.mean())
+        metrics[f"c_err_outside_mean_{name}"] = float(err[~inside].mean())
+        metrics[f"c_err_inside_mean_{name}"] = float(err[inside].mean()) if inside.any() else 0.0
+        columns[f"c_{name}"] = est.numpy()
+    metrics["num_video_frames"] = num_video
+    metrics["num_reference_frames"] = num_ref
+    return metrics, columns, {"c_true": c_true, "estimates": estimates, "inside": inside}
+
+
+def plot(path, data, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2), dpi=110)
+    t = np.arange(len(data["c_true"]))
+    inside = data["inside"].numpy()
+    if inside.any():
+        idx = np.nonzero(inside)[0]
+        ax.axvspan(idx[0] - 0.5, idx[-1] + 0.5, color="0.9", label="replaced frames")
+    ax.plot(t, data["c_true"].numpy(), "k-", lw=2, label="true C")
+    styles = {
+        "dtw": ("C3", "--", "proposal DTW"),
+        "chain": ("C0", ":", "chain Viterbi"),
+        "robust": ("C2", "-", "robust chain"),
+    }
+    for name, est in data["estimates"].items():
+        colour, ls, label = styles[name]
+        ax.plot(t, est.numpy(), color=colour, ls=ls, lw=1.4, label=label)
+    ax.set_xlabel("input frame t'")
+    ax.set_ylabel("reference frame C(t')")
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

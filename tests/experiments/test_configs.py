@@ -1,0 +1,68 @@
+"""Every config runs in tiny mode (configs cannot drift from code); the metric names are a
+contract; config mistakes fail loudly."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from experiments.__main__ import main
+from experiments.config import ConfigError, load_config, parse_overrides
+from experiments.runner import EXPERIMENTS, run_config
+
+CONFIGS = sorted((Path(__file__).resolve().parents[2] / "experiments" / "configs").glob("*.yaml"))
+CONTRACT = {
+    "stick_time": [
+        f"{m}_{method}"
+        for m in ("c_err_mean", "c_err_outside_mean", "c_err_inside_mean")
+        for method in ("dtw", "chain", "robust")
+    ],
+}
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
+def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
+    metrics = run_config(path, {"tiny": True, "out_dir": str(tmp_path)})
+    name = path.stem
+    on_disk = json.loads((tmp_path / "metrics.json").read_text())
+    assert on_disk == metrics and (tmp_path / "table.md").exists()
+    for key in CONTRACT[name]:
+        assert any(k == key or k.startswith(key + "@") for k in metrics), key
+    assert list(tmp_path.rglob("plot.png")) and list(tmp_path.rglob("per_frame.csv"))
+
+
+def test_stick_time_targets_on_the_default_config_tiny(tmp_path):
+    m = run_config(
+        CONFIGS[[c.stem for c in CONFIGS].index("stick_time")],
+        {"tiny": True, "out_dir": str(tmp_path)},
+    )
+    assert m["c_err_mean_chain@corrupt=False"] <= 1.0
+    assert m["c_err_outside_mean_robust@corrupt=True"] <= 1.0
+
+
+def test_config_mistakes_fail_loudly(tmp_path):
+    schemas = {k: v[0] for k, v in EXPERIMENTS.items()}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("experiment: stick_time\ncorupt: true\n")
+    with pytest.raises(ConfigError, match="unknown key 'corupt' for StickTimeConfig"):
+        load_config(bad, schemas)
+    bad.write_text("experiment: stick_time\nnoise: lots\n")
+    with pytest.raises(ConfigError, match="noise must be a number"):
+        load_config(bad, schemas)
+    bad.write_text("experiment: stick_time\nsweep:\n  - {fsp: 30}\n")
+    with pytest.raises(ConfigError, match=r"sweep\[0\]: unknown key 'fsp'"):
+        load_config(bad, schemas)
+    bad.write_text("experiment: nonsense\n")
+    with pytest.raises(ConfigError, match="unknown experiment 'nonsense'"):
+        load_config(bad, schemas)
+    assert parse_overrides(["seed=3", "corrupt=false", "fps=30.0"]) == {
+        "seed": 3,
+        "corrupt": False,
+        "fps": 30.0,
+    }
+
+
+def test_cli_run_reports_errors_in_one_line(tmp_path, capsys):
+    assert main(["run", str(CONFIGS[0]), "colour=red"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "unknown key 'colour'" in err and "\n" not in err
