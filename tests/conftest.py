@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import itertools
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # pytest -n 2 on 2 cores: one intra-op thread per worker, or the workers' thread pools
+    # oversubscribe the cores and small batched ops slow down tenfold
+    torch.set_num_threads(1)
 
 
 def requires_shared_data():
