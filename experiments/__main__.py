@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiments.config import ConfigError, parse_overrides
+from experiments.config import ConfigError, ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
 
 
@@ -34,6 +34,9 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             metrics = run_config(args.config, parse_overrides(args.overrides))
+        except ExperimentSkipped as why:
+            print(f"skipped: {why}")
+            return 0
         except (ConfigError, OSError, ValueError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 1

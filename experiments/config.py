@@ -22,11 +22,15 @@ from typing import Any
 
 import yaml
 
-__all__ = ["ConfigError", "apply_overrides", "load_config", "parse_overrides"]
+__all__ = ["ConfigError", "ExperimentSkipped", "apply_overrides", "load_config", "parse_overrides"]
 
 
 class ConfigError(ValueError):
     """A config that does not match its schema."""
+
+
+class ExperimentSkipped(RuntimeError):
+    """An experiment cannot run here (e.g. its data set is absent); the message says why."""
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -9,9 +9,16 @@ import pytest
 from experiments.__main__ import main
 from experiments.config import ConfigError, load_config, parse_overrides
 from experiments.runner import EXPERIMENTS, run_config
+from tests.conftest import SHARED_DATA, requires_shared_data
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "experiments" / "configs").glob("*.yaml"))
 CONTRACT = {
+    "pose2sim_real": [
+        "cam_rot_err_deg_mean",
+        "cam_pos_err_m_mean",
+        "reproj_px_median",
+        "c_err_mean",
+    ],
     "stick_time": [
         f"{m}_{method}"
         for m in ("c_err_mean", "c_err_outside_mean", "c_err_inside_mean")
@@ -22,6 +29,8 @@ CONTRACT = {
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
 def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
+    if path.stem == "pose2sim_real" and not SHARED_DATA.is_dir():
+        pytest.skip(f"needs the shared data folder at {SHARED_DATA}")
     metrics = run_config(path, {"tiny": True, "out_dir": str(tmp_path)})
     name = path.stem
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
@@ -66,3 +75,20 @@ def test_cli_run_reports_errors_in_one_line(tmp_path, capsys):
     assert main(["run", str(CONFIGS[0]), "colour=red"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "unknown key 'colour'" in err and "\n" not in err
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+def test_pose2sim_real_meets_its_targets(tmp_path):
+    """Extrinsics within a few degrees / centimetres of the calibration, C error <= 1 frame."""
+    m = run_config(
+        CONFIGS[[c.stem for c in CONFIGS].index("pose2sim_real")], {"out_dir": str(tmp_path)}
+    )
+    assert m["cam_rot_err_deg_mean"] < 3.0 and m["cam_pos_err_m_mean"] < 0.1
+    assert m["c_err_mean"] <= 1.0 and m["reproj_px_median"] < 15
+
+
+def test_missing_data_skips_with_a_message(tmp_path, capsys):
+    path = CONFIGS[[c.stem for c in CONFIGS].index("pose2sim_real")]
+    assert main(["run", str(path), f"data={tmp_path}", f"out_dir={tmp_path / 'o'}"]) == 0
+    assert capsys.readouterr().out.startswith("skipped: pose2sim_real needs the shared data set")
