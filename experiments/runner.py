@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 from tqdm import tqdm
 
-from experiments import pose2sim_real, stick_time
+from experiments import pose2sim_real, stick_pose, stick_time
 from experiments.config import apply_overrides, load_config
 
 __all__ = ["EXPERIMENTS", "run_config"]
@@ -25,6 +25,7 @@ __all__ = ["EXPERIMENTS", "run_config"]
 #: experiment name -> (config schema, run function, plot function)
 EXPERIMENTS = {
     "stick_time": (stick_time.StickTimeConfig, stick_time.run, stick_time.plot),
+    "stick_pose": (stick_pose.StickPoseConfig, stick_pose.run, stick_pose.plot),
     "pose2sim_real": (pose2sim_real.Pose2simRealConfig, pose2sim_real.run, pose2sim_real.plot),
 }
 

@@ -13,6 +13,13 @@ from tests.conftest import SHARED_DATA, requires_shared_data
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "experiments" / "configs").glob("*.yaml"))
 CONTRACT = {
+    "stick_pose": [
+        f"{p}{m}_{n}"
+        for p in ("", "opencv_")
+        for m in ("reg_err_mean", "rot_err_deg_mean", "pos_err_mean")
+        for n in ("n0", "n18", "n36")
+    ]
+    + ["poses_per_s", "opencv_poses_per_s"],
     "pose2sim_real": [
         "cam_rot_err_deg_mean",
         "cam_pos_err_m_mean",

@@ -1,0 +1,183 @@
+"""Pose of stick figures from 2-D joints (the proposal's Section 5.1.1, Figs. 6-11).
+
+Per frame of a BVH motion, the 20 body landmarks (``motion.bodyparts`` roles) are placed by
+a random global rotation and translation in front of a perspective camera, projected, and
+disturbed by uniform noise of +-``noise`` x the 2-D figure height on each coordinate (the
+proposal's noise model: 1.8 % and 3.6 %). The global pose is recovered by
+``motion.pose.solve_pose`` and by OpenCV's EPnP + ``solvePnPRefineLM`` on the same data.
+Errors: E_R (Eq. 21), E_r (Eq. 22, XYZ Euler angles, degrees), E_p (Eq. 23, over the 3-D
+figure height). Throughput of both on ``throughput_poses`` poses, same run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from experiments.stick_time import BUNDLED, _reference_landmarks
+from motion.kinematics import matrix_to_euler
+from motion.metrics import position_error, registration_error, rotation_error_deg
+from motion.pose import solve_pose
+
+K = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
+LEVELS = {"n0": 0.0, "n18": 0.018, "n36": 0.036}
+
+
+@dataclass
+class StickPoseConfig:
+    """Fields of ``experiments/configs/stick_pose.yaml``."""
+
+    bvh: str = BUNDLED
+    frames: int = 82
+    camera_distance: float = 5.0
+    sweep_noise: list = field(default_factory=lambda: [0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
+    throughput_poses: int = 10000
+    seed: int = 0
+    out_dir: str = "runs/stick_pose"
+    tiny: bool = False
+
+
+def _problems(cfg: StickPoseConfig, g: torch.Generator):
+    ref, _ = _reference_landmarks(cfg.bvh)
+    step = max(1, len(ref) // cfg.frames)
+    x3 = ref[::step][: cfg.frames]
+    x3 = x3 - x3.mean(1, keepdim=True)
+    b = x3.shape[0]
+    rv = torch.randn(b, 3, generator=g, dtype=torch.float64) * 0.6
+    r = axis_angle_to_rotation_matrix(rv)
+    t = torch.tensor([0.0, 0.0, cfg.camera_distance], dtype=torch.float64) + 0.2 * torch.randn(
+        b, 3, generator=g, dtype=torch.float64
+    )
+    pc = x3 @ r.transpose(1, 2) + t[:, None]
+    uv = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
+    return x3, r, t, uv
+
+
+def _opencv(x3: torch.Tensor, obs: torch.Tensor):
+    rs, ts = [], []
+    for x, o in zip(x3.numpy(), obs.numpy(), strict=True):
+        _, rv, tv = cv2.solvePnP(x, o, K.numpy(), None, flags=cv2.SOLVEPNP_EPNP)
+        rv, tv = cv2.solvePnPRefineLM(x, o, K.numpy(), None, rv, tv)
+        rs.append(rv[:, 0])
+        ts.append(tv[:, 0])
+    return axis_angle_to_rotation_matrix(torch.from_numpy(np.stack(rs))), torch.from_numpy(
+        np.stack(ts)
+    )
+
+
+def _errors(x3, r_true, t_true, obs, r_est, t_est, h2d, h3d):
+    pc = x3 @ r_est.transpose(1, 2) + t_est[:, None]
+    proj = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
+    e_reg = registration_error(proj, obs, h2d)
+    e_rot = rotation_error_deg(matrix_to_euler(r_true, "XYZ"), matrix_to_euler(r_est, "XYZ"))
+    e_pos = position_error(t_true, t_est, h3d)
+    return e_reg, e_rot, e_pos
+
+
+def run(cfg: StickPoseConfig):
+    g = torch.Generator().manual_seed(cfg.seed)
+    if cfg.tiny:
+        cfg = StickPoseConfig(
+            **{**cfg.__dict__, "frames": 12, "throughput_poses": 200, "sweep_noise": [0.0, 0.036]}
+        )
+    x3, r, t, uv = _problems(cfg, g)
+    h2d = uv[..., 1].amax(-1) - uv[..., 1].amin(-1)
+    h3d = x3[..., 1].amax(-1) - x3[..., 1].amin(-1)
+    metrics: dict[str, float] = {}
+    columns: dict[str, np.ndarray] = {"frame": np.arange(x3.shape[0])}
+    for suffix, level in LEVELS.items():
+        obs = (
+            uv
+            + (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1)
+            * level
+            * h2d[:, None, None]
+        )
+        ours = solve_pose(x3, obs, K)
+        cv_r, cv_t = _opencv(x3, obs)
+        for prefix, (re, te) in (("", (ours.R, ours.t)), ("opencv_", (cv_r, cv_t))):
+            e_reg, e_rot, e_pos = _errors(x3, r, t, obs, re, te, h2d, h3d)
+            metrics[f"{prefix}reg_err_mean_{suffix}"] = float(e_reg.mean())
+            metrics[f"{prefix}rot_err_deg_mean_{suffix}"] = float(e_rot.mean())
+            metrics[f"{prefix}pos_err_mean_{suffix}"] = float(e_pos.mean())
+            columns[f"{prefix}rot_err_deg_{suffix}"] = e_rot.numpy()
+            columns[f"{prefix}pos_err_{suffix}"] = e_pos.numpy()
+            columns[f"{prefix}reg_err_{suffix}"] = e_reg.numpy()
+    sweep = {"noise": [], "rot": [], "pos": [], "reg": [], "cv_rot": [], "cv_pos": [], "cv_reg": []}
+    for level in cfg.sweep_noise:
+        obs = (
+            uv
+            + (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1)
+            * level
+            * h2d[:, None, None]
+        )
+        ours = solve_pose(x3, obs, K)
+        cv_r, cv_t = _opencv(x3, obs)
+        for key, (re, te) in (("", (ours.R, ours.t)), ("cv_", (cv_r, cv_t))):
+            e_reg, e_rot, e_pos = _errors(x3, r, t, obs, re, te, h2d, h3d)
+            sweep[key + "rot"].append(float(e_rot.mean()))
+            sweep[key + "pos"].append(float(e_pos.mean()))
+            sweep[key + "reg"].append(float(e_reg.mean()))
+        sweep["noise"].append(level)
+    # throughput on many poses (the same generator of problems, tiled)
+    n = cfg.throughput_poses
+    reps = -(-n // x3.shape[0])
+    big3 = x3.repeat(reps, 1, 1)[:n]
+    big2 = (
+        uv
+        + (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1)
+        * 0.018
+        * h2d[:, None, None]
+    ).repeat(reps, 1, 1)[:n]
+    t0 = time.perf_counter()
+    solve_pose(big3, big2, K)
+    metrics["poses_per_s"] = n / (time.perf_counter() - t0)
+    m = min(n, 2000)
+    t0 = time.perf_counter()
+    _opencv(big3[:m], big2[:m])
+    metrics["opencv_poses_per_s"] = m / (time.perf_counter() - t0)
+    return metrics, columns, {"columns": columns, "sweep": sweep}
+
+
+def plot(path, data, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c, s = data["columns"], data["sweep"]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), dpi=100)
+    for i, (name, label) in enumerate(
+        (("reg_err", "E_R"), ("rot_err_deg", "E_r (deg)"), ("pos_err", "E_p"))
+    ):
+        ax = axes[0, i]
+        for suffix, colour in (("n0", "k"), ("n18", "C0"), ("n36", "C3")):
+            ax.plot(c["frame"], c[f"{name}_{suffix}"], color=colour, lw=1, label=f"ours {suffix}")
+            ax.plot(
+                c["frame"],
+                c[f"opencv_{name}_{suffix}"],
+                color=colour,
+                lw=1,
+                ls=":",
+                label=f"OpenCV {suffix}",
+            )
+        ax.set_title(f"{label} per frame (Figs. 6-8)", fontsize=9)
+        ax.set_xlabel("frame")
+        if i == 0:
+            ax.legend(fontsize=6)
+    for i, (key, label) in enumerate((("reg", "E_R"), ("rot", "E_r (deg)"), ("pos", "E_p"))):
+        ax = axes[1, i]
+        noise = np.array(s["noise"]) * 100
+        ax.plot(noise, s[key], "C0o-", label="ours")
+        ax.plot(noise, s["cv_" + key], "C1s--", label="OpenCV EPnP + RefineLM")
+        ax.set_xlabel("2-D joint noise (% of figure height)")
+        ax.set_title(f"mean {label} vs noise (Figs. 9-11)", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
