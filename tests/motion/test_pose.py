@@ -74,3 +74,23 @@ def test_pose_input_errors():
     with pytest.raises(ValueError, match="NaN"):
         solve_pose(torch.full((1, 8, 3), math.nan), torch.zeros(1, 8, 2), K)
     assert np.isfinite(solve_pose(*_problems(b=2)[::3][:2], K).cost.numpy()).all()
+
+
+def test_newton_with_modified_cholesky_mostly_reaches_the_lm_optimum():
+    """The proposal's Newton refinement, for comparison: on most problems it lands on LM's
+    optimum; it is never better, and from a weak-perspective start it sometimes stalls in a
+    worse basin (2 of 40 here) -- one reason the solver uses LM."""
+    from motion.pose import newton_pose, refine_pose
+
+    x, _r, _t, uv, g = _problems(b=40, seed=3)
+    height = uv[..., 1].amax(-1) - uv[..., 1].amin(-1)
+    obs = (
+        uv + (torch.rand(uv.shape, generator=g, dtype=F64) * 2 - 1) * 0.036 * height[:, None, None]
+    )
+    r0, t0 = affine_pose(x, obs, K)
+    lm = refine_pose(x, obs, K, r0, t0)
+    newton = newton_pose(x, obs, K, r0, t0)
+    same = (newton.cost - lm.cost).abs() <= 1e-6 * lm.cost + 1e-9
+    assert same.float().mean() >= 0.9
+    assert (newton.cost >= lm.cost * (1 - 1e-6)).all()
+    assert _angle_deg(lm.R[same], newton.R[same]).max() < 1e-3
