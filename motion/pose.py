@@ -233,35 +233,45 @@ def refine_pose(
     res, rx, pc, z = _residuals(r, t, x3, x2, K)
     cost = res.square().sum((-1, -2))
     lam = torch.full_like(cost, 1e-3)
-    converged = torch.zeros_like(cost, dtype=torch.bool)
     eye = torch.eye(6, dtype=x2.dtype, device=x2.device)
+    tol = max(tol, 10 * torch.finfo(x2.dtype).eps)  # float32 cannot resolve finer changes
+    # Only problems that have not converged are iterated (an active set): most converge in a
+    # few steps, and the stragglers should not cost the whole batch.
+    active = torch.arange(x2.shape[0], device=x2.device)
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported
-        j = _jacobian(rx, pc, z, K).reshape(x2.shape[0], -1, 6)
+        a3, a2, ak = x3[active], x2[active], K[active]
+        ar, at, acost, alam = r[active], t[active], cost[active], lam[active]
+        ares, arx, apc, az = res[active], rx[active], pc[active], z[active]
+        j = _jacobian(arx, apc, az, ak).reshape(len(active), -1, 6)
         jtj = j.transpose(1, 2) @ j
-        g = (j.transpose(1, 2) @ res.reshape(x2.shape[0], -1, 1)).squeeze(-1)
+        g = (j.transpose(1, 2) @ ares.reshape(len(active), -1, 1)).squeeze(-1)
         diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
-        damped = jtj + lam[:, None, None] * (eye * diag.unsqueeze(-1) + 1e-12 * eye)
+        damped = jtj + alam[:, None, None] * (eye * diag.unsqueeze(-1) + 1e-12 * eye)
         step = _solve_spd(damped, -g)
-        r_new = axis_angle_to_rotation_matrix(step[:, :3]) @ r
-        t_new = t + step[:, 3:]
-        res_new, rx_new, pc_new, z_new = _residuals(r_new, t_new, x3, x2, K)
+        r_new = axis_angle_to_rotation_matrix(step[:, :3]) @ ar
+        t_new = at + step[:, 3:]
+        res_new, rx_new, pc_new, z_new = _residuals(r_new, t_new, a3, a2, ak)
         cost_new = res_new.square().sum((-1, -2))
-        better = (cost_new < cost) & torch.isfinite(cost_new) & (pc_new[..., 2] > 0).all(-1)
-        sel = better[:, None, None]
-        r = torch.where(sel, r_new, r)
-        t = torch.where(better[:, None], t_new, t)
-        res = torch.where(sel, res_new, res)
-        rx = torch.where(sel, rx_new, rx)
-        pc = torch.where(sel, pc_new, pc)
-        z = torch.where(better[:, None], z_new, z)
-        improvement = torch.where(better, cost - cost_new, torch.zeros_like(cost))
-        cost = torch.where(better, cost_new, cost)
-        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-9, 1e9)
+        better = (cost_new < acost) & torch.isfinite(cost_new) & (pc_new[..., 2] > 0).all(-1)
+        improvement = torch.where(better, acost - cost_new, torch.zeros_like(acost))
+        keep = better[:, None, None]
+        r[active] = torch.where(keep, r_new, ar)
+        t[active] = torch.where(better[:, None], t_new, at)
+        res[active] = torch.where(keep, res_new, ares)
+        rx[active] = torch.where(keep, rx_new, arx)
+        pc[active] = torch.where(keep, pc_new, apc)
+        z[active] = torch.where(better[:, None], z_new, az)
+        new_cost = torch.where(better, cost_new, acost)
+        cost[active] = new_cost
+        new_lam = torch.where(better, alam * 0.3, alam * 10).clamp(1e-9, 1e9)
+        lam[active] = new_lam
         # converged: an accepted step that barely helped, or damping so high steps vanish
-        done = (better & (improvement <= tol * cost.clamp_min(1e-30) + 1e-30)) | (lam >= 1e8)
-        converged = converged | done
-        if converged.all():
+        done = (better & (improvement <= tol * new_cost.clamp_min(1e-30) + 1e-30)) | (
+            new_lam >= 1e8
+        )
+        active = active[~done]
+        if len(active) == 0:
             break
     return PoseResult(r, t, cost / x2.shape[1], it)
 
