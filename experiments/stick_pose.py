@@ -90,35 +90,27 @@ def run(cfg: StickPoseConfig):
     h3d = x3[..., 1].amax(-1) - x3[..., 1].amin(-1)
     metrics: dict[str, float] = {}
     columns: dict[str, np.ndarray] = {"frame": np.arange(x3.shape[0])}
-    for suffix, level in LEVELS.items():
-        obs = (
-            uv
-            + (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1)
-            * level
-            * h2d[:, None, None]
-        )
+
+    def solve_at(level: float) -> dict[str, tuple]:
+        """Both solvers at one noise level: {"": (E_R, E_r, E_p), "opencv_": ...} per frame."""
+        noise = (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1) * level
+        obs = uv + noise * h2d[:, None, None]
         ours = solve_pose(x3, obs, K)
         cv_r, cv_t = _opencv(x3, obs)
-        for prefix, (re, te) in (("", (ours.R, ours.t)), ("opencv_", (cv_r, cv_t))):
-            e_reg, e_rot, e_pos = _errors(x3, r, t, obs, re, te, h2d, h3d)
-            metrics[f"{prefix}reg_err_mean_{suffix}"] = float(e_reg.mean())
-            metrics[f"{prefix}rot_err_deg_mean_{suffix}"] = float(e_rot.mean())
-            metrics[f"{prefix}pos_err_mean_{suffix}"] = float(e_pos.mean())
-            columns[f"{prefix}rot_err_deg_{suffix}"] = e_rot.numpy()
-            columns[f"{prefix}pos_err_{suffix}"] = e_pos.numpy()
-            columns[f"{prefix}reg_err_{suffix}"] = e_reg.numpy()
+        return {
+            prefix: _errors(x3, r, t, obs, re, te, h2d, h3d)
+            for prefix, (re, te) in (("", (ours.R, ours.t)), ("opencv_", (cv_r, cv_t)))
+        }
+
+    for suffix, level in LEVELS.items():
+        for prefix, (e_reg, e_rot, e_pos) in solve_at(level).items():
+            for name, err in (("reg_err", e_reg), ("rot_err_deg", e_rot), ("pos_err", e_pos)):
+                metrics[f"{prefix}{name}_mean_{suffix}"] = float(err.mean())
+                columns[f"{prefix}{name}_{suffix}"] = err.numpy()
     sweep = {"noise": [], "rot": [], "pos": [], "reg": [], "cv_rot": [], "cv_pos": [], "cv_reg": []}
     for level in cfg.sweep_noise:
-        obs = (
-            uv
-            + (torch.rand(uv.shape, generator=g, dtype=torch.float64) * 2 - 1)
-            * level
-            * h2d[:, None, None]
-        )
-        ours = solve_pose(x3, obs, K)
-        cv_r, cv_t = _opencv(x3, obs)
-        for key, (re, te) in (("", (ours.R, ours.t)), ("cv_", (cv_r, cv_t))):
-            e_reg, e_rot, e_pos = _errors(x3, r, t, obs, re, te, h2d, h3d)
+        for prefix, (e_reg, e_rot, e_pos) in solve_at(level).items():
+            key = "cv_" if prefix else ""
             sweep[key + "rot"].append(float(e_rot.mean()))
             sweep[key + "pos"].append(float(e_pos.mean()))
             sweep[key + "reg"].append(float(e_reg.mean()))
