@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from motion.alignment import chain_align, dtw, robust_cost, slope_step_cost
+from motion.alignment import chain_align, coarse_to_fine_align, dtw, robust_cost, slope_step_cost
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
@@ -43,7 +43,11 @@ class StickTimeConfig:
     seed: int = 0
     out_dir: str = "runs/stick_time"
     tiny: bool = False
+    # dtw, chain, robust (full cost matrix) and c2f (coarse-to-fine chain: Eq. 24 evaluated
+    # on demand inside a band, for long sequences)
     methods: list = field(default_factory=lambda: ["dtw", "chain", "robust"])
+    full_matrix_max_cells: int = 5_000_000
+    c2f_max_cells: int = 200_000
 
 
 def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
@@ -86,13 +90,37 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
     x2 = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
     height = float((x2[..., 1].amax(-1) - x2[..., 1].amin(-1)).median())
     x2 = x2 + (torch.rand(x2.shape, generator=g, dtype=torch.float64) * 2 - 1) * cfg.noise * height
-    # Eq. 24 for every (t', t): one batched pose solve per video frame against all references
     n = ref.shape[1]
-    cost = torch.empty(num_video, num_ref, dtype=torch.float64)
-    for i in range(num_video):
-        res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
-        cost[i] = res.cost / height**2
+
+    def pair_cost(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+        """Eq. 24 on demand for video frames ``rows`` (R,) against references ``cols`` (R, W)."""
+        rr = rows[:, None].expand_as(cols).reshape(-1)
+        res = solve_pose(ref[cols.reshape(-1)], x2[rr], k)
+        return (res.cost / height**2).reshape(cols.shape)
+
     estimates = {}
+    full_methods = [m for m in cfg.methods if m in ("dtw", "chain", "robust")]
+    if full_methods:
+        if num_video * num_ref > cfg.full_matrix_max_cells:
+            raise ValueError(
+                f"{num_video} x {num_ref} cells exceed full_matrix_max_cells={cfg.full_matrix_max_cells}: "
+                "use methods=[c2f] for long sequences (coarse-to-fine, no full matrix)"
+            )
+        # Eq. 24 for every (t', t): one batched pose solve per video frame against all references
+        cost = torch.empty(num_video, num_ref, dtype=torch.float64)
+        for i in range(num_video):
+            res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
+            cost[i] = res.cost / height**2
+    if "c2f" in cfg.methods:
+        estimates["c2f"] = coarse_to_fine_align(
+            pair_cost,
+            num_video,
+            num_ref,
+            cfg.max_step,
+            fix_start=True,
+            fix_end=True,
+            max_cells=cfg.c2f_max_cells,
+        ).path[0]
     if "dtw" in cfg.methods:
         estimates["dtw"] = dtw(cost).choice
     if "chain" in cfg.methods:
@@ -141,6 +169,7 @@ def plot(path, data, title: str) -> None:
         "dtw": ("C3", "--", "proposal DTW"),
         "chain": ("C0", ":", "chain Viterbi"),
         "robust": ("C2", "-", "robust chain"),
+        "c2f": ("C4", "-.", "chain, coarse-to-fine"),
     }
     for name, est in data["estimates"].items():
         colour, ls, label = styles[name]
