@@ -28,12 +28,7 @@ BUNDLED_BVH = Path(__file__).resolve().parents[1] / "motion" / "data" / "cmu_02_
 def angle_features(bvh_path: Path) -> tuple[torch.Tensor, float]:
     """``(T, 2R)`` sin/cos of the R rotation channels of every frame, and the frame rate (Hz)."""
     bvh = read_bvh(bvh_path)
-    motion = bvh.motion
-    rot0 = motion[0, bvh.rotation_columns()]
-    if len(motion) > 1 and bvh.names[0] == "Hips" and np.array_equal(rot0, np.round(rot0)):
-        # cgspeed conversions prepend a reference pose (whole-degree angles, the same in every
-        # file; ../shared/data/README.md): it is not part of the motion
-        motion = motion[1:]
+    motion = bvh.motion_frames()  # without the cgspeed converter's reference pose
     angles = np.deg2rad(motion[:, bvh.rotation_columns()])
     feats = np.concatenate([np.sin(angles), np.cos(angles)], axis=1)
     return torch.from_numpy(feats), bvh.frame_rate

@@ -53,10 +53,7 @@ class StickTimeConfig:
 def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
     bvh = read_bvh(path)
     skel = Skeleton.from_bvh(bvh)
-    motion = bvh.motion
-    rot0 = motion[0, bvh.rotation_columns()]
-    if len(motion) > 1 and bvh.names[0] == "Hips" and np.array_equal(rot0, np.round(rot0)):
-        motion = motion[1:]  # the cgspeed converter's reference pose
+    motion = bvh.motion_frames()  # without a converter's reference pose
     fk = forward_kinematics(skel, *local_rotations(skel, torch.from_numpy(motion), bvh.channels))
     model = BodyModel.from_skeleton(skel)
     landmarks = model.landmarks(model.skeleton_points(skel, fk))  # (T, R, 3)

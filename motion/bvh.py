@@ -65,6 +65,20 @@ class BVH:
             start += len(ch)
         return out
 
+    def has_reference_pose(self) -> bool:
+        """True when frame 0 looks like the cgspeed converter's reference pose (a root named
+        ``Hips`` and whole-degree rotations; ../shared/data/README.md): not part of the motion."""
+        rot0 = self.motion[0, self.rotation_columns()]
+        return (
+            len(self.motion) > 1
+            and self.names[0] == "Hips"
+            and bool(np.array_equal(rot0, np.round(rot0)))
+        )
+
+    def motion_frames(self) -> np.ndarray:
+        """``(F', C)`` the motion without a converter's reference pose in frame 0."""
+        return self.motion[1:] if self.has_reference_pose() else self.motion
+
     def rotation_columns(self) -> np.ndarray:
         """Indices of all rotation channels (degrees) in :attr:`motion`."""
         flat = [c for ch in self.channels for c in ch]

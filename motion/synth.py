@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from motion.bodyparts import BodyModel
-from motion.bvh import BVH, read_bvh
+from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.draw import PART_COLOURS, write_video
 from motion.features import edges
@@ -123,14 +123,6 @@ def time_warp(
     return torch.cummax((warp * (num_ref - 1)).round().long(), 0).values
 
 
-def _drop_reference_pose(bvh: BVH) -> np.ndarray:
-    motion = bvh.motion
-    rot0 = motion[0, bvh.rotation_columns()]
-    if len(motion) > 1 and np.array_equal(rot0, np.round(rot0)) and bvh.names[0] == "Hips":
-        return motion[1:]
-    return motion
-
-
 def _rig(cfg: SynthConfig, centre: torch.Tensor, distance: float) -> CameraRig:
     """Cameras on a circle around ``centre`` (world Y up), looking at it horizontally."""
     w, h = cfg.size
@@ -183,7 +175,7 @@ def synthesize(
     g = torch.Generator().manual_seed(cfg.seed)
     ref = read_bvh(reference)
     source = read_bvh(student) if student is not None else ref
-    motion = _drop_reference_pose(source) if cfg.drop_reference_pose else source.motion
+    motion = source.motion_frames() if cfg.drop_reference_pose else source.motion
     skel = Skeleton.from_bvh(source)
     num_ref = motion.shape[0]
     num_video = int((num_ref - 1) * cfg.fps / source.frame_rate) + 1

@@ -106,8 +106,16 @@ def test_stick_time_coarse_to_fine_matches_the_full_chain_without_the_full_matri
 
     base = StickTimeConfig(tiny=True, corrupt=False, out_dir=str(tmp_path))
     full, _, _ = run(StickTimeConfig(**{**base.__dict__, "methods": ["chain"]}))
-    c2f, _, _ = run(StickTimeConfig(**{**base.__dict__, "methods": ["c2f"], "c2f_max_cells": 400,
-                                      "full_matrix_max_cells": 1}))
+    c2f, _, _ = run(
+        StickTimeConfig(
+            **{
+                **base.__dict__,
+                "methods": ["c2f"],
+                "c2f_max_cells": 400,
+                "full_matrix_max_cells": 1,
+            }
+        )
+    )
     assert c2f["c_err_mean_c2f"] <= full["c_err_mean_chain"] + 0.05
     with pytest.raises(ValueError, match="use methods=\\[c2f\\] for long sequences"):
         run(StickTimeConfig(**{**base.__dict__, "full_matrix_max_cells": 1}))

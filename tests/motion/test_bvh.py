@@ -133,3 +133,17 @@ def test_round_trip_bundled(tmp_path):
 def test_round_trip_every_shared_file(tmp_path, name):
     a = read_bvh(SHARED_DATA / "bvh" / name)
     _same(a, read_bvh(write_bvh(a, tmp_path / "out.bvh")))
+
+
+def test_cgspeed_reference_pose_is_recognised():
+    bvh = read_bvh(BUNDLED)
+    assert bvh.has_reference_pose()
+    assert bvh.motion_frames().shape == (343, 96)
+    np.testing.assert_array_equal(bvh.motion_frames(), bvh.motion[1:])
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+def test_daz_files_have_no_reference_pose():
+    bvh = read_bvh(SHARED_DATA / "bvh" / "cmu_lawrennd_mocap" / "10_03.bvh")
+    assert not bvh.has_reference_pose() and bvh.motion_frames().shape[0] == 363
