@@ -19,7 +19,15 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import Tensor
 
-__all__ = ["PoseResult", "affine_pose", "dlt_pose", "newton_pose", "refine_pose", "solve_pose"]
+__all__ = [
+    "PoseResult",
+    "affine_pose",
+    "dlt_pose",
+    "newton_pose",
+    "refine_pose",
+    "solve_pose",
+    "solve_pose_views",
+]
 
 
 @dataclass
@@ -393,3 +401,114 @@ def newton_pose(
         if (improved <= tol * cost.clamp_min(1e-30) + 1e-30).all():
             break
     return PoseResult(r, t, cost / x2.shape[1], it)
+
+
+def solve_pose_views(
+    points3d: Tensor,
+    points2d: Tensor,
+    K: Tensor,
+    R_cam: Tensor,
+    t_cam: Tensor,
+    weights: Tensor | None = None,
+    iterations: int = 30,
+    init_camera: int = 0,
+) -> PoseResult:
+    """Body pose seen by several calibrated cameras at once.
+
+    Finds the world pose ``(R, t)`` of the body with ``x_c ~ K_c (R_c (R X + t) + t_c)`` for
+    every camera c: started from the single-view solution of ``init_camera`` (moved into
+    the world frame), then Levenberg-Marquardt on all cameras' residuals together.
+
+    Args:
+        points3d: ``(B, n, 3)`` body-frame joints (metres).
+        points2d: ``(B, C, n, 2)`` pixels in each camera.
+        K, R_cam, t_cam: ``(C, 3, 3)``, ``(C, 3, 3)``, ``(C, 3)``: the rig (world to camera).
+        weights: optional ``(B, C, n)`` >= 0 (0 = not seen, e.g. a missed detection).
+
+    Returns:
+        :class:`PoseResult` with world ``R``, ``t`` and the weighted mean squared residual.
+    """
+    if points2d.dim() != 4 or points2d.shape[-1] != 2 or points2d.shape[1] != K.shape[0]:
+        raise ValueError(
+            f"points2d must be (B, C, n, 2) with C = {K.shape[0]} cameras; got {tuple(points2d.shape)}"
+        )
+    b, c, n, _ = points2d.shape
+    dtype = points2d.dtype
+    x3 = points3d.expand(b, n, 3)
+    K, R_cam, t_cam = K.to(dtype), R_cam.to(dtype), t_cam.to(dtype)
+    w = torch.ones(b, c, n, dtype=dtype) if weights is None else weights.to(dtype)
+    sw = w.sqrt().unsqueeze(-1)  # (B, C, n, 1)
+    single = solve_pose(x3, points2d[:, init_camera], K[init_camera])
+    rc0, tc0 = R_cam[init_camera], t_cam[init_camera]
+    r = rc0.T @ single.R
+    t = (single.t - tc0) @ rc0  # R_c0^T (t_single - t_c0), row-vector form
+
+    def residuals(r, t):
+        rx = x3 @ r.transpose(1, 2)  # (B, n, 3): R X
+        q = rx + t[:, None]
+        pc = torch.einsum("cij,bnj->bcni", R_cam, q) + t_cam[None, :, None]  # (B, C, n, 3)
+        z = pc[..., 2].clamp_min(1e-9)
+        fx, fy = K[:, 0, 0][None, :, None], K[:, 1, 1][None, :, None]
+        cx, cy, skew = (
+            K[:, 0, 2][None, :, None],
+            K[:, 1, 2][None, :, None],
+            K[:, 0, 1][None, :, None],
+        )
+        u = fx * pc[..., 0] / z + skew * pc[..., 1] / z + cx
+        v = fy * pc[..., 1] / z + cy
+        res = torch.stack([u - points2d[..., 0], v - points2d[..., 1]], -1) * sw
+        return res, rx, pc, z
+
+    res, rx, pc, z = residuals(r, t)
+    cost = res.square().sum((1, 2, 3))
+    lam = torch.full_like(cost, 1e-3)
+    eye = torch.eye(6, dtype=dtype)
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported
+        fx, fy, skew = (
+            K[:, 0, 0][None, :, None],
+            K[:, 1, 1][None, :, None],
+            K[:, 0, 1][None, :, None],
+        )
+        zi = 1.0 / z
+        zero = torch.zeros_like(zi)
+        du = torch.stack([fx * zi, skew * zi, -(fx * pc[..., 0] + skew * pc[..., 1]) * zi * zi], -1)
+        dv = torch.stack([zero, fy * zi, -fy * pc[..., 1] * zi * zi], -1)
+        dproj = torch.stack([du, dv], -2) @ R_cam[None, :, None]  # (B, C, n, 2, 3): d uv / d q
+        a, bb, cc = rx[..., 0], rx[..., 1], rx[..., 2]
+        zr = torch.zeros_like(a)
+        skew_rx = torch.stack(
+            [
+                torch.stack([zr, -cc, bb], -1),
+                torch.stack([cc, zr, -a], -1),
+                torch.stack([-bb, a, zr], -1),
+            ],
+            -2,
+        )  # [R X]_x, (B, n, 3, 3)
+        j_rot = -(dproj @ skew_rx[:, None])
+        j = (torch.cat([j_rot, dproj], -1) * sw.unsqueeze(-1)).reshape(b, -1, 6)
+        jtj = j.transpose(1, 2) @ j
+        g = (j.transpose(1, 2) @ res.reshape(b, -1, 1)).squeeze(-1)
+        diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
+        step = _solve_spd(jtj + lam[:, None, None] * (eye * diag.unsqueeze(-1) + 1e-12 * eye), -g)
+        r_new = axis_angle_to_rotation_matrix(step[:, :3]) @ r
+        t_new = t + step[:, 3:]
+        res_new, rx_new, pc_new, z_new = residuals(r_new, t_new)
+        cost_new = res_new.square().sum((1, 2, 3))
+        seen = w > 0
+        better = (
+            (cost_new < cost)
+            & torch.isfinite(cost_new)
+            & ((pc_new[..., 2] > 0) | ~seen).all(-1).all(-1)
+        )
+        improvement = torch.where(better, cost - cost_new, torch.zeros_like(cost))
+        k3, k4 = better[:, None, None], better[:, None, None, None]
+        r, t = torch.where(k3, r_new, r), torch.where(better[:, None], t_new, t)
+        res, rx = torch.where(k4, res_new, res), torch.where(k3, rx_new, rx)
+        pc, z = torch.where(k4, pc_new, pc), torch.where(k3, z_new, z)
+        cost = torch.where(better, cost_new, cost)
+        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-9, 1e9)
+        done = (better & (improvement <= 1e-10 * cost + 1e-30)) | (lam >= 1e8)
+        if done.all():
+            break
+    return PoseResult(r, t, cost / w.sum((1, 2)).clamp_min(1), it)

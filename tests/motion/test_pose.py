@@ -94,3 +94,47 @@ def test_newton_with_modified_cholesky_mostly_reaches_the_lm_optimum():
     assert same.float().mean() >= 0.9
     assert (newton.cost >= lm.cost * (1 - 1e-6)).all()
     assert _angle_deg(lm.R[same], newton.R[same]).max() < 1e-3
+
+
+def _rig(c=3, seed=9):
+    g = torch.Generator().manual_seed(seed)
+    angles = torch.linspace(0, 2 * math.pi, c + 1, dtype=F64)[:-1]
+    rc = axis_angle_to_rotation_matrix(
+        torch.stack([torch.zeros(c, dtype=F64), angles, torch.zeros(c, dtype=F64)], -1)
+    )
+    tc = torch.tensor([0.0, 0.0, 5.0], dtype=F64).expand(c, 3) + 0.1 * torch.randn(
+        c, 3, generator=g, dtype=F64
+    )
+    return K.expand(c, 3, 3), rc, tc
+
+
+def _views(x, r, t, k, rc, tc):
+    q = x @ r.transpose(1, 2) + t[:, None]
+    pc = torch.einsum("cij,bnj->bcni", rc, q) + tc[None, :, None]
+    return pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=F64)
+
+
+def test_multi_view_pose_is_exact_without_noise_and_beats_one_view_with_noise():
+    from motion.pose import solve_pose_views
+
+    x, _, _, _, g = _problems(b=60, seed=5)
+    r = axis_angle_to_rotation_matrix(0.5 * torch.randn(60, 3, generator=g, dtype=F64))
+    t = 0.3 * torch.randn(60, 3, generator=g, dtype=F64)
+    k, rc, tc = _rig()
+    uv = _views(x, r, t, k, rc, tc)  # (B, C, n, 2)
+    exact = solve_pose_views(x, uv, k, rc, tc)
+    assert _angle_deg(r, exact.R).max() < 1e-6
+    torch.testing.assert_close(exact.t, t, atol=1e-8, rtol=0)
+    noisy = uv + 3.0 * torch.randn(uv.shape, generator=g, dtype=F64)
+    multi = solve_pose_views(x, noisy, k, rc, tc)
+    one = solve_pose(x, noisy[:, 0], k[0])
+    one_world = rc[0].T @ one.R
+    assert _angle_deg(r, multi.R).mean() < 0.8 * _angle_deg(r, one_world).mean()
+    # a camera that saw nothing (weight 0) does not disturb the answer
+    w = torch.ones(noisy.shape[:3], dtype=F64)
+    w[:, 2] = 0
+    garbage = noisy.clone()
+    garbage[:, 2] = 1e4
+    masked = solve_pose_views(x, garbage, k, rc, tc, weights=w)
+    two = solve_pose_views(x, noisy[:, :2], k[:2], rc[:2], tc[:2])
+    assert _angle_deg(two.R, masked.R).max() < 1e-6
