@@ -185,19 +185,24 @@ def _translation_given_rotation(r: Tensor, x3: Tensor, norm: Tensor) -> Tensor:
     return _solve3(a.transpose(1, 2) @ a, (a.transpose(1, 2) @ b.unsqueeze(-1)).squeeze(-1))
 
 
+def _project(pc: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, skew: Tensor):
+    """Pinhole pixels of camera-frame points; intrinsics broadcast against ``pc[..., 0]``.
+    Returns u, v and the depth (clamped positive)."""
+    z = pc[..., 2].clamp_min(1e-9)
+    u = fx * pc[..., 0] / z + skew * pc[..., 1] / z + cx
+    v = fy * pc[..., 1] / z + cy
+    return u, v, z
+
+
+def _intrinsics(K: Tensor, shape: tuple[int, ...]) -> list[Tensor]:
+    """fx, fy, cx, cy, skew of ``K`` (..., 3, 3), reshaped to broadcast as ``shape``."""
+    return [K[..., i, j].reshape(shape) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1))]
+
+
 def _residuals(r: Tensor, t: Tensor, x3: Tensor, x2: Tensor, K: Tensor):
     rx = x3 @ r.transpose(1, 2)  # (B, n, 3) rotated points
     pc = rx + t[:, None]
-    z = pc[..., 2].clamp_min(1e-9)
-    fx, fy, cx, cy, skew = (
-        K[:, 0, 0, None],
-        K[:, 1, 1, None],
-        K[:, 0, 2, None],
-        K[:, 1, 2, None],
-        K[:, 0, 1, None],
-    )
-    u = fx * pc[..., 0] / z + skew * pc[..., 1] / z + cx
-    v = fy * pc[..., 1] / z + cy
+    u, v, z = _project(pc, *_intrinsics(K, (-1, 1)))
     res = torch.stack([u - x2[..., 0], v - x2[..., 1]], -1)  # (B, n, 2)
     return res, rx, pc, z
 
@@ -447,15 +452,7 @@ def solve_pose_views(
         rx = x3 @ r.transpose(1, 2)  # (B, n, 3): R X
         q = rx + t[:, None]
         pc = torch.einsum("cij,bnj->bcni", R_cam, q) + t_cam[None, :, None]  # (B, C, n, 3)
-        z = pc[..., 2].clamp_min(1e-9)
-        fx, fy = K[:, 0, 0][None, :, None], K[:, 1, 1][None, :, None]
-        cx, cy, skew = (
-            K[:, 0, 2][None, :, None],
-            K[:, 1, 2][None, :, None],
-            K[:, 0, 1][None, :, None],
-        )
-        u = fx * pc[..., 0] / z + skew * pc[..., 1] / z + cx
-        v = fy * pc[..., 1] / z + cy
+        u, v, z = _project(pc, *_intrinsics(K, (1, -1, 1)))
         res = torch.stack([u - points2d[..., 0], v - points2d[..., 1]], -1) * sw
         return res, rx, pc, z
 
