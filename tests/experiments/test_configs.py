@@ -56,6 +56,22 @@ def test_stick_time_targets_on_the_default_config_tiny(tmp_path):
     assert m["c_err_outside_mean_robust@corrupt=True"] <= 1.0
 
 
+def test_stick_pose_with_an_orthographic_camera(tmp_path):
+    """OpenCV's PnP has no orthographic camera: only ours is reported, exact without noise."""
+    m = run_config(
+        CONFIGS[[c.stem for c in CONFIGS].index("stick_pose")],
+        {"tiny": True, "out_dir": str(tmp_path), "camera": "orthographic"},
+    )
+    assert m["rot_err_deg_mean_n0"] < 1e-6 and m["pos_err_mean_n0"] < 1e-9
+    assert 0 < m["rot_err_deg_mean_n18"] < m["rot_err_deg_mean_n36"] < 5
+    assert not any(k.startswith("opencv_") for k in m)
+    with pytest.raises(ConfigError, match="camera must be one of"):
+        run_config(
+            CONFIGS[[c.stem for c in CONFIGS].index("stick_pose")],
+            {"tiny": True, "out_dir": str(tmp_path), "camera": "fisheye"},
+        )
+
+
 def test_config_mistakes_fail_loudly(tmp_path):
     schemas = {k: v[0] for k, v in EXPERIMENTS.items()}
     bad = tmp_path / "bad.yaml"
