@@ -43,8 +43,8 @@ class StickTimeConfig:
     seed: int = 0
     out_dir: str = "runs/stick_time"
     tiny: bool = False
-    # dtw, chain, robust (full cost matrix) and c2f (coarse-to-fine chain: Eq. 24 evaluated
-    # on demand inside a band, for long sequences)
+    # dtw, chain, robust (full cost matrix); c2f and c2f_robust (the chain and the robust
+    # chain coarse-to-fine: Eq. 24 evaluated on demand inside a band, for long sequences)
     methods: list = field(default_factory=lambda: ["dtw", "chain", "robust"])
     full_matrix_max_cells: int = 5_000_000
     c2f_max_cells: int = 200_000
@@ -108,8 +108,18 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
         for i in range(num_video):
             res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
             cost[i] = res.cost / height**2
-    if "c2f" in cfg.methods:
-        estimates["c2f"] = coarse_to_fine_align(
+    slope = (num_ref - 1) / max(num_video - 1, 1)
+    for method in ("c2f", "c2f_robust"):
+        if method not in cfg.methods:
+            continue
+        robust = {}
+        if method == "c2f_robust":  # the robust chain's cost and prior, in units of tau
+            robust = {
+                "robust": "truncate",
+                "robust_scale": cfg.robust_scale,
+                "step_cost": slope_step_cost(cfg.max_step, slope, cfg.slope_weight).double(),
+            }
+        estimates[method] = coarse_to_fine_align(
             pair_cost,
             num_video,
             num_ref,
@@ -117,6 +127,7 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
             fix_start=True,
             fix_end=True,
             max_cells=cfg.c2f_max_cells,
+            **robust,
         ).path[0]
     if "dtw" in cfg.methods:
         estimates["dtw"] = dtw(cost).choice
@@ -125,7 +136,6 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
     if "robust" in cfg.methods:
         threshold = cfg.robust_scale * float(cost.amin(-1).median())
         robust = robust_cost(cost, threshold=max(threshold, 1e-12))
-        slope = (num_ref - 1) / max(num_video - 1, 1)
         prior = slope_step_cost(
             cfg.max_step, slope, cfg.slope_weight * float(robust.max())
         ).double()
@@ -167,6 +177,7 @@ def plot(path, data, title: str) -> None:
         "chain": ("C0", ":", "chain Viterbi"),
         "robust": ("C2", "-", "robust chain"),
         "c2f": ("C4", "-.", "chain, coarse-to-fine"),
+        "c2f_robust": ("C5", "--", "robust chain, coarse-to-fine"),
     }
     for name, est in data["estimates"].items():
         colour, ls, label = styles[name]

@@ -415,6 +415,10 @@ def coarse_to_fine_align(
     max_cells: int = 2_000_000,
     fix_start: bool = False,
     fix_end: bool = False,
+    step_cost: Tensor | None = None,
+    robust: str | None = None,
+    robust_scale: float = 2.0,
+    threshold: float | None = None,
 ) -> Alignment:
     """Monotone alignment of long sequences without the full T' x T cost matrix.
 
@@ -434,9 +438,19 @@ def coarse_to_fine_align(
         radius: band half-width in reference frames at each level (default ``factor * S``).
         max_cells: solve directly once ``T' * T`` is at most this.
         fix_start, fix_end: force C(0) = 0 / C(T'-1) = T-1.
+        step_cost: optional ``(S + 1,)`` cost of each step size 0..S (a slope prior, e.g.
+            :func:`slope_step_cost`), at every level: subsampling both sequences by the same
+            factor keeps step sizes and the slope. With ``robust``, in units of the threshold.
+        robust: ``"truncate"`` or ``"saturate"`` (see :func:`robust_cost`) at every level,
+            then divided by the threshold so costs lie in [0, 1].
+        robust_scale, threshold: the threshold tau; by default ``robust_scale`` times the
+            median over t' of each row's minimum at the coarsest level (the only full
+            matrix; its row minima, over subsampled references, are slightly above the full
+            ones).
 
     Returns:
-        :class:`Alignment` with ``path`` (1, T') and ``cost`` (1,).
+        :class:`Alignment` with ``path`` (1, T') and ``cost`` (1,): the sum of the (robust,
+        if set) costs along the path, excluding ``step_cost``.
     """
     _check_step(max_step)
     if max_step is None:
@@ -448,58 +462,96 @@ def coarse_to_fine_align(
     radius = factor * max_step if radius is None else radius
     if radius < 1:
         raise AlignmentError(f"radius must be >= 1; got {radius}")
-
-    if num_video * num_ref <= max_cells or num_video < 2 * factor or num_ref < 2 * factor:
-        rows = torch.arange(num_video)
-        cols = torch.arange(num_ref).expand(num_video, num_ref)
-        cost = _evaluate(cost_fn, rows, cols)
-        return chain_align(cost, max_step, fix_start=fix_start, fix_end=fix_end)
-
-    vid_idx = torch.arange(0, num_video, factor)
-    ref_idx = torch.arange(0, num_ref, factor)
-
-    def coarse_fn(rows: Tensor, cols: Tensor) -> Tensor:
-        return cost_fn(vid_idx[rows], ref_idx[cols])
-
-    coarse = coarse_to_fine_align(
-        coarse_fn,
-        len(vid_idx),
-        len(ref_idx),
-        max_step,
-        factor=factor,
-        radius=radius,
-        max_cells=max_cells,
-        fix_start=fix_start,
-        fix_end=fix_end,
+    if robust not in (None, "truncate", "saturate"):
+        raise AlignmentError(f"robust must be None, 'truncate' or 'saturate'; got {robust!r}")
+    if not (robust_scale > 0 and math.isfinite(robust_scale)):
+        raise AlignmentError(f"robust_scale must be a finite positive number; got {robust_scale}")
+    if step_cost is not None:
+        step_cost = _step_factor(max_step, step_cost).step_log_potential.neg()  # validated
+    levels = _Levels(
+        max_step, factor, radius, max_cells, fix_start, fix_end, robust, robust_scale, step_cost
     )
-    centre = np.interp(
-        np.arange(num_video), vid_idx.numpy(), ref_idx[coarse.path[0]].double().numpy()
-    )
-    # Past the last coarse sample, follow the coarse slope.
-    tail = np.arange(num_video) > int(vid_idx[-1])
-    if tail.any() and len(vid_idx) > 1:
-        slope = (centre[int(vid_idx[-1])] - centre[int(vid_idx[-2])]) / factor
-        centre[tail] = centre[int(vid_idx[-1])] + slope * (
-            np.arange(num_video)[tail] - int(vid_idx[-1])
-        )
-    width = min(2 * radius + 1, num_ref)
-    lo = torch.from_numpy(np.round(centre)).long() - radius
-    lo = torch.cummax(lo.clamp(0, num_ref - width), 0).values
-    cols = lo[:, None] + torch.arange(width)
-    cost = _evaluate(cost_fn, torch.arange(num_video), cols)
-    _check_cost(cost)
-    unary = -cost.unsqueeze(0)
-    if fix_start:
-        unary[:, 0] = unary[:, 0].masked_fill(cols[0] != 0, -math.inf)
-    if fix_end:
-        unary[:, -1] = unary[:, -1].masked_fill(cols[-1] != num_ref - 1, -math.inf)
-    try:
-        result = chain_map(unary, BandedMonotoneFactor(max_step, lo))
-    except InfeasibleError as err:
-        raise AlignmentError(
-            "no monotone path fits the band around the coarse path; increase radius"
-        ) from err
-    offsets = result.assignment[0]
-    path = lo + offsets
-    total = cost.gather(-1, offsets.unsqueeze(-1)).sum()
+    path, total, _ = levels.solve(cost_fn, num_video, num_ref, threshold)
     return Alignment(path.unsqueeze(0), total.reshape(1))
+
+
+@dataclass
+class _Levels:
+    """The settings :func:`coarse_to_fine_align` recurses with."""
+
+    max_step: int
+    factor: int
+    radius: int
+    max_cells: int
+    fix_start: bool
+    fix_end: bool
+    robust: str | None
+    robust_scale: float
+    step_cost: Tensor | None
+
+    def shape(self, cost: Tensor, threshold: float | None) -> tuple[Tensor, float | None]:
+        """Robust, normalised costs; the threshold is fixed by the first (coarsest) call."""
+        if self.robust is None:
+            return cost, None
+        if threshold is None:
+            row_min = cost.amin(-1)
+            threshold = self.robust_scale * float(row_min[torch.isfinite(row_min)].median())
+            threshold = max(threshold, torch.finfo(torch.float64).tiny)
+        return robust_cost(cost, threshold, self.robust) / threshold, threshold
+
+    def solve(
+        self, cost_fn: CostFn, num_video: int, num_ref: int, threshold: float | None
+    ) -> tuple[Tensor, Tensor, float | None]:
+        """Path ``(T',)``, its cost, and the threshold used."""
+        f = self.factor
+        if num_video * num_ref <= self.max_cells or num_video < 2 * f or num_ref < 2 * f:
+            rows = torch.arange(num_video)
+            cols = torch.arange(num_ref).expand(num_video, num_ref)
+            cost, threshold = self.shape(_evaluate(cost_fn, rows, cols), threshold)
+            direct = chain_align(
+                cost,
+                self.max_step,
+                fix_start=self.fix_start,
+                fix_end=self.fix_end,
+                step_cost=self.step_cost,
+            )
+            return direct.path[0], direct.cost[0], threshold
+
+        vid_idx = torch.arange(0, num_video, f)
+        ref_idx = torch.arange(0, num_ref, f)
+
+        def coarse_fn(rows: Tensor, cols: Tensor) -> Tensor:
+            return cost_fn(vid_idx[rows], ref_idx[cols])
+
+        coarse_path, _, threshold = self.solve(coarse_fn, len(vid_idx), len(ref_idx), threshold)
+        centre = np.interp(
+            np.arange(num_video), vid_idx.numpy(), ref_idx[coarse_path].double().numpy()
+        )
+        # Past the last coarse sample, follow the coarse slope.
+        tail = np.arange(num_video) > int(vid_idx[-1])
+        if tail.any() and len(vid_idx) > 1:
+            slope = (centre[int(vid_idx[-1])] - centre[int(vid_idx[-2])]) / f
+            centre[tail] = centre[int(vid_idx[-1])] + slope * (
+                np.arange(num_video)[tail] - int(vid_idx[-1])
+            )
+        width = min(2 * self.radius + 1, num_ref)
+        lo = torch.from_numpy(np.round(centre)).long() - self.radius
+        lo = torch.cummax(lo.clamp(0, num_ref - width), 0).values
+        cols = lo[:, None] + torch.arange(width)
+        cost, threshold = self.shape(_evaluate(cost_fn, torch.arange(num_video), cols), threshold)
+        _check_cost(cost)
+        unary = -cost.unsqueeze(0)
+        if self.fix_start:
+            unary[:, 0] = unary[:, 0].masked_fill(cols[0] != 0, -math.inf)
+        if self.fix_end:
+            unary[:, -1] = unary[:, -1].masked_fill(cols[-1] != num_ref - 1, -math.inf)
+        step_lp = None if self.step_cost is None else -self.step_cost
+        banded = BandedMonotoneFactor(self.max_step, lo, step_lp)
+        try:
+            result = chain_map(unary, banded)
+        except InfeasibleError as err:
+            raise AlignmentError(
+                "no monotone path fits the band around the coarse path; increase radius"
+            ) from err
+        offsets = result.assignment[0]
+        return lo + offsets, cost.gather(-1, offsets.unsqueeze(-1)).sum(), threshold

@@ -119,6 +119,15 @@ class PairwiseFactor:
         return (h + cond).argmax(-1)
 
 
+def _check_step_log_potential(step_log_potential: Tensor, max_step: int) -> None:
+    if step_log_potential.shape != (max_step + 1,):
+        raise ValueError(
+            f"step_log_potential must have shape ({max_step + 1},) for max_step="
+            f"{max_step}; got {tuple(step_log_potential.shape)}"
+        )
+    _check_finite_or_neg_inf("step_log_potential", step_log_potential)
+
+
 def _check_finite_or_neg_inf(name: str, x: Tensor) -> None:
     if torch.isnan(x).any() or torch.isposinf(x).any():
         raise ValueError(f"{name} must be finite or -inf (forbidden); found NaN or +inf")
@@ -226,12 +235,7 @@ class MonotoneFactor(PairwiseFactor):
         if step_log_potential is not None:
             if max_step is None:
                 raise ValueError("step_log_potential needs a finite max_step")
-            if step_log_potential.shape != (max_step + 1,):
-                raise ValueError(
-                    f"step_log_potential must have shape ({max_step + 1},) for max_step="
-                    f"{max_step}; got {tuple(step_log_potential.shape)}"
-                )
-            _check_finite_or_neg_inf("step_log_potential", step_log_potential)
+            _check_step_log_potential(step_log_potential, max_step)
         self.max_step = max_step
         self.step_log_potential = step_log_potential
 
@@ -362,9 +366,11 @@ class BandedMonotoneFactor(PairwiseFactor):
     Args:
         max_step: S >= 1.
         offsets: ``(N,)`` long, first absolute position of each node's window.
+        step_log_potential: optional ``(S + 1,)`` log-potential of each step size 0..S (a
+            slope prior), as :class:`MonotoneFactor`'s.
     """
 
-    def __init__(self, max_step: int, offsets: Tensor):
+    def __init__(self, max_step: int, offsets: Tensor, step_log_potential: Tensor | None = None):
         if isinstance(max_step, bool) or not isinstance(max_step, int) or max_step < 1:
             raise ValueError(f"max_step (S) must be an int >= 1, got {max_step!r}")
         if offsets.dim() != 1 or offsets.dtype.is_floating_point:
@@ -372,6 +378,10 @@ class BandedMonotoneFactor(PairwiseFactor):
         self.max_step = max_step
         self.offsets = offsets.long()
         self.num_edges = offsets.shape[0] - 1
+        if step_log_potential is None:
+            step_log_potential = torch.zeros(max_step + 1, dtype=torch.get_default_dtype())
+        _check_step_log_potential(step_log_potential, max_step)
+        self.step_log_potential = step_log_potential
 
     def viterbi(self, unary: Tensor, overwrite: bool = False) -> tuple[Tensor, Tensor] | None:
         """Fused chain Viterbi over the band, in NumPy on the CPU (windows are short, so
@@ -389,6 +399,10 @@ class BandedMonotoneFactor(PairwiseFactor):
         shifts = (self.offsets[1:] - self.offsets[:-1]).tolist()
         alpha = unary.detach().numpy() if overwrite else unary.detach().numpy().copy()
         alpha = alpha.astype(np.float64, copy=False)
+        step_lp = self.step_log_potential.double().numpy()
+        # window index k reads the source S - k positions back: a step of S - k
+        window_lp = step_lp[::-1].copy()
+        plain = not step_lp.any()
         log_scale = np.zeros(b)
         work = np.full((b, s + w + max([0, *shifts])), -np.inf)
         windows = np.lib.stride_tricks.sliding_window_view(work, s + 1, axis=1)  # a view
@@ -396,7 +410,10 @@ class BandedMonotoneFactor(PairwiseFactor):
             d = shifts[t - 1]
             work[:, s : s + w] = alpha[:, t - 1]
             # target j reads source positions j + d - S .. j + d (window of `work` at j + d)
-            alpha[:, t] += windows[:, d : d + w].max(-1)
+            if plain:
+                alpha[:, t] += windows[:, d : d + w].max(-1)
+            else:
+                alpha[:, t] += (windows[:, d : d + w] + window_lp).max(-1)
             if t % 32 == 0:
                 c = alpha[:, t].max(-1)
                 c = np.where(np.isfinite(c), c, 0.0)
@@ -412,7 +429,8 @@ class BandedMonotoneFactor(PairwiseFactor):
                 lo = max(0, hi - s)
                 top = min(hi, w - 1)
                 # reversed: argmax takes the first maximum = the smallest step
-                j = top - int(alpha[bi, t, lo : top + 1][::-1].argmax())
+                cand = alpha[bi, t, lo : top + 1][::-1] + step_lp[hi - top : hi - lo + 1]
+                j = top - int(cand.argmax())
                 states[bi, t] = j
         return torch.from_numpy(score).to(unary.dtype), torch.from_numpy(states)
 
@@ -425,8 +443,8 @@ class BandedMonotoneFactor(PairwiseFactor):
         i = torch.arange(num_states)
         step = d[:, None, None] + i[None, None, :] - i[None, :, None]
         allowed = (step >= 0) & (step <= self.max_step)
-        zero = torch.zeros((), dtype=torch.get_default_dtype())
-        return torch.where(allowed, zero, -math.inf).unsqueeze(0)
+        lp = self.step_log_potential[step.clamp(0, self.max_step)]
+        return torch.where(allowed, lp, -math.inf).unsqueeze(0)
 
     def _gather_index(self, edges: EdgeIndex, width: int, forward: bool) -> tuple[Tensor, Tensor]:
         d = self._shift(edges)[:, None, None]
@@ -441,6 +459,7 @@ class BandedMonotoneFactor(PairwiseFactor):
         b, e, w = h.shape
         src, valid = self._gather_index(edges, w, forward)
         vals = h.unsqueeze(2).expand(b, e, w, w).gather(-1, src.unsqueeze(0).expand(b, -1, -1, -1))
+        vals = vals + self.step_log_potential.to(vals.dtype)  # the last axis is the step
         vals = torch.where(valid, vals, torch.full_like(vals, semiring.zero))
         return semiring.sum(vals, dim=-1)
 
@@ -450,8 +469,8 @@ class BandedMonotoneFactor(PairwiseFactor):
         t = target_state.unsqueeze(-1)
         step = t + d - i if forward else i + d - t
         allowed = (step >= 0) & (step <= self.max_step)
-        zero = torch.zeros((), dtype=torch.get_default_dtype())
-        return torch.where(allowed, zero, -math.inf)
+        lp = self.step_log_potential[step.clamp(0, self.max_step)]
+        return torch.where(allowed, lp, -math.inf)
 
     def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
         d = self._shift(edges)[None, :, None]
@@ -460,6 +479,6 @@ class BandedMonotoneFactor(PairwiseFactor):
         cand = t + d - s if forward else t - d + s
         w = h.shape[-1]
         valid = (cand >= 0) & (cand < w)
-        vals = h.gather(-1, cand.clamp(0, w - 1))
+        vals = h.gather(-1, cand.clamp(0, w - 1)) + self.step_log_potential.to(h.dtype)
         vals = torch.where(valid, vals, torch.full_like(vals, -math.inf))
         return cand.gather(-1, vals.argmax(-1, keepdim=True)).squeeze(-1)

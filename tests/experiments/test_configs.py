@@ -133,5 +133,20 @@ def test_stick_time_coarse_to_fine_matches_the_full_chain_without_the_full_matri
         )
     )
     assert c2f["c_err_mean_c2f"] <= full["c_err_mean_chain"] + 0.05
+    # corrupted input: the robust cost and slope prior work coarse-to-fine as on the full matrix
+    bad = StickTimeConfig(**{**base.__dict__, "corrupt": True})
+    full, _, _ = run(StickTimeConfig(**{**bad.__dict__, "methods": ["robust"]}))
+    c2f, _, _ = run(
+        StickTimeConfig(
+            **{
+                **bad.__dict__,
+                "methods": ["c2f", "c2f_robust"],
+                "c2f_max_cells": 400,
+                "full_matrix_max_cells": 1,
+            }
+        )
+    )
+    assert c2f["c_err_outside_mean_c2f_robust"] <= full["c_err_outside_mean_robust"] + 0.25
+    assert c2f["c_err_outside_mean_c2f_robust"] <= 1.0
     with pytest.raises(ValueError, match="use methods=\\[c2f\\] for long sequences"):
         run(StickTimeConfig(**{**base.__dict__, "full_matrix_max_cells": 1}))

@@ -209,10 +209,8 @@ def test_robust_cost_modes():
 
 
 # -- long sequences ----------------------------------------------------------------------------
-@pytest.mark.parametrize("seed", range(3))
-def test_coarse_to_fine_equals_full_solution_on_smooth_warps(seed):
+def _smooth_warp_problem(seed, num_ref=2400, num_video=500):
     g = torch.Generator().manual_seed(seed)
-    num_ref, num_video = 2400, 500
     t = torch.arange(num_ref, dtype=torch.float64)
     ref = torch.sin(
         t[:, None] * (torch.rand(6, generator=g, dtype=torch.float64) * 0.02 + 0.005)
@@ -221,11 +219,47 @@ def test_coarse_to_fine_equals_full_solution_on_smooth_warps(seed):
     u = torch.linspace(0, 1, num_video, dtype=torch.float64)
     true = ((u + 0.06 * torch.sin(2 * math.pi * u)) * (num_ref - 1)).round().long()
     video = ref[true] + 0.01 * torch.randn(num_video, 6, generator=g, dtype=torch.float64)
+    return video, ref, true, g
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_coarse_to_fine_equals_full_solution_on_smooth_warps(seed):
+    video, ref, _, _ = _smooth_warp_problem(seed)
+    num_video, num_ref = len(video), len(ref)
     fn = sequence_cost_fn(video, ref)
     full = chain_align(fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1)), 10)
     c2f = coarse_to_fine_align(fn, num_video, num_ref, 10, max_cells=50_000)
     assert torch.equal(c2f.path, full.path)
     torch.testing.assert_close(c2f.cost, full.cost)
+
+
+@pytest.mark.parametrize("mode", ["truncate", "saturate"])
+def test_coarse_to_fine_robust_with_slope_prior_equals_the_full_robust_chain(mode):
+    """A corrupted stretch (video frames 200-259 replaced by noise): with the full solution's
+    threshold, coarse-to-fine with the robust cost and a slope prior finds exactly the full
+    robust chain's path; with its own threshold (from the coarsest level) it stays on the
+    true warp outside the corrupted stretch."""
+    video, ref, true, g = _smooth_warp_problem(7)
+    video[200:260] = torch.randn(60, 6, generator=g, dtype=torch.float64)
+    num_video, num_ref = len(video), len(ref)
+    fn = sequence_cost_fn(video, ref)
+    cost = fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1))
+    tau = 2.0 * float(cost.amin(-1).median())
+    prior = slope_step_cost(10, (num_ref - 1) / (num_video - 1), 0.5).double()
+    full = chain_align(robust_cost(cost, tau, mode) / tau, 10, step_cost=prior)
+    kwargs = {"max_cells": 50_000, "step_cost": prior, "robust": mode}
+    c2f = coarse_to_fine_align(fn, num_video, num_ref, 10, threshold=tau, **kwargs)
+    assert torch.equal(c2f.path, full.path)
+    torch.testing.assert_close(c2f.cost, full.cost)
+    own = coarse_to_fine_align(fn, num_video, num_ref, 10, **kwargs)
+    outside = torch.ones(num_video, dtype=torch.bool)
+    outside[200:260] = False
+    assert (own.path[0][outside] - true[outside]).abs().double().mean() < 1.0
+    plain = coarse_to_fine_align(fn, num_video, num_ref, 10, max_cells=50_000)
+    err = (plain.path[0] - true).abs().double()
+    assert err[~outside].mean() > (own.path[0] - true).abs().double()[~outside].mean()
+    with pytest.raises(AlignmentError, match="robust must be"):
+        coarse_to_fine_align(fn, num_video, num_ref, 10, robust="clip")
 
 
 # -- bad input ---------------------------------------------------------------------------------

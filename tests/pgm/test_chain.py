@@ -149,6 +149,35 @@ def test_banded_factor_equals_dense_table():
     )
 
 
+def test_banded_factor_with_step_potentials_equals_dense_table_and_monotone_factor():
+    """A slope prior on the band: the dense table of the same factor (all semirings), the
+    fused kernel, and -- with windows covering the whole axis -- MonotoneFactor with the same
+    step potentials on the full problem, all agree."""
+    torch.manual_seed(6)
+    n, w, s = 20, 7, 3
+    steps = torch.tensor([-0.5, 0.0, -0.3, -2.0], dtype=torch.float64)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.randint(0, 3, (n - 1,)).cumsum(0)])
+    factor = BandedMonotoneFactor(s, offsets, steps)
+    dense = TableFactor(factor.log_potential(slice(0, n - 1), None, None, w).double())
+    unary = torch.randn(2, n, w, dtype=torch.float64)
+    for semiring in [LogSemiring(), MaxSemiring()]:
+        a = chain_inference(unary, factor, semiring)
+        b = chain_inference(unary, dense, semiring)
+        torch.testing.assert_close(a.log_partition, b.log_partition)
+    fused, generic = chain_map(unary, factor), chain_map(unary, factor, use_fused=False)
+    assert torch.equal(fused.assignment, chain_map(unary, dense).assignment)
+    assert torch.equal(fused.assignment, generic.assignment)
+    torch.testing.assert_close(fused.log_partition, generic.log_partition)
+    # windows = the whole axis
+    full = torch.randn(2, n, 12, dtype=torch.float64)
+    banded = chain_map(full, BandedMonotoneFactor(s, torch.zeros(n, dtype=torch.long), steps))
+    plain = chain_map(full, MonotoneFactor(s, steps))
+    assert torch.equal(banded.assignment, plain.assignment)
+    torch.testing.assert_close(banded.log_partition, plain.log_partition)
+    with pytest.raises(ValueError, match=r"step_log_potential must have shape \(4,\)"):
+        BandedMonotoneFactor(s, offsets, torch.zeros(3))
+
+
 def test_infeasible_chain_raises():
     unary = torch.zeros(1, 3, 10)
     unary[:, 0, 1:] = -math.inf
