@@ -172,39 +172,8 @@ def affine_pose(
     perspective. Stable where the DLT is not (a body far from the camera is nearly flat in
     depth). For an ``orthographic`` camera the affine scale is dropped (it is known:
     pixels per metre) and ``t_z = 0``. Shapes as :func:`dlt_pose`."""
-    return _affine(*_check(points3d, points2d, K), orthographic)
-
-
-def _affine(x3: Tensor, x2: Tensor, K: Tensor, orthographic: bool = False) -> tuple[Tensor, Tensor]:
-    norm = _normalised(x2, K)
-    xc = x3 - x3.mean(1, keepdim=True)
-    nc = norm - norm.mean(1, keepdim=True)
-    # least squares nc ~ xc A^T by the normal equations (3x3, closed form)
-    gram = xc.transpose(1, 2) @ xc
-    rhs = xc.transpose(1, 2) @ nc  # (B, 3, 2)
-    a = torch.stack([_solve3(gram, rhs[..., 0]), _solve3(gram, rhs[..., 1])], 1)  # (B, 2, 3)
-    # nearest orthonormal rows: the polar factor (A A^T)^(-1/2) A, in closed form for the
-    # 2x2 SPD matrix M = A A^T (batched 2x3 SVDs are ~20x slower on the CPU)
-    m = a @ a.transpose(1, 2)
-    det = (m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]).clamp_min(1e-30)
-    sd = det.sqrt()
-    eye2 = torch.eye(2, dtype=a.dtype, device=a.device)
-    root = (m + sd[:, None, None] * eye2) / (m[:, 0, 0] + m[:, 1, 1] + 2 * sd).sqrt()[:, None, None]
-    adj = torch.stack(
-        [
-            torch.stack([root[:, 1, 1], -root[:, 0, 1]], -1),
-            torch.stack([-root[:, 1, 0], root[:, 0, 0]], -1),
-        ],
-        -2,
-    )
-    inv_root = adj / (root[:, 0, 0] * root[:, 1, 1] - root[:, 0, 1] * root[:, 1, 0])[:, None, None]
-    r12 = inv_root @ a
-    r3 = torch.linalg.cross(r12[:, 0], r12[:, 1])
-    r = torch.cat([r12, r3.unsqueeze(1)], 1)
-    if orthographic:  # the image of the centroid gives t_x, t_y; t_z is unobservable: 0
-        t_xy = norm.mean(1) - (x3.mean(1, keepdim=True) @ r12.transpose(1, 2)).squeeze(1)
-        return r, torch.cat([t_xy, torch.zeros_like(t_xy[:, :1])], -1)
-    return r, _translation_given_rotation(r, x3, norm)
+    r, t = _Pinhole.build(*_check(points3d, points2d, K), orthographic).initial_pose()
+    return r.permute(2, 0, 1), t.T
 
 
 def _normalised(x2: Tensor, K: Tensor) -> Tensor:
@@ -304,15 +273,65 @@ class _Pinhole:
         )
 
     def select(self, index: Tensor) -> _Pinhole:
-        """The problems at ``index`` (a boolean mask or indices over the batch)."""
+        """The problems at ``index`` (long indices over the batch)."""
         fields = (self.fx, self.fy, self.cx, self.cy, self.skew)
         return _Pinhole(
-            self.X[..., index],
-            self.u[:, index],
-            self.v[:, index],
+            self.X.index_select(-1, index),
+            self.u.index_select(-1, index),
+            self.v.index_select(-1, index),
             *(f[index] for f in fields),
             orthographic=self.orthographic,
         )
+
+    def initial_pose(self) -> tuple[Tensor, Tensor]:
+        """Weak-perspective start (see :func:`affine_pose`): ``r (3, 3, B)``, ``t (3, B)``.
+
+        A least-squares affine camera on centred points (3x3 normal equations), its two rows
+        made orthonormal by the polar factor ``(A A^T)^(-1/2) A`` (closed form for the 2x2
+        SPD ``A A^T``), then the exact least-squares translation for that rotation (or, for
+        an orthographic camera, the image of the centroid, with ``t_z = 0``)."""
+        yn = (self.v - self.cy) / self.fy
+        xn = (self.u - self.cx - self.skew * yn) / self.fx
+        mean = self.X.mean(1)  # (3, B)
+        xc = self.X - mean[:, None]
+        xs, ys = xn - xn.mean(0), yn - yn.mean(0)
+        gram = [[(xc[i] * xc[j]).sum(0) if j <= i else None for j in range(3)] for i in range(3)]
+        low = _cholesky(lambda i, j: gram[i][j], 3)
+        a = [
+            _backward(low, _forward(low, [(xc[i] * s).sum(0) for i in range(3)])) for s in (xs, ys)
+        ]
+        m00, m01, m11 = (
+            sum(p * q for p, q in zip(a[i], a[j], strict=True)) for i, j in ((0, 0), (0, 1), (1, 1))
+        )
+        sd = (m00 * m11 - m01 * m01).clamp_min(1e-30).sqrt()
+        norm = (m00 + m11 + 2 * sd).sqrt()
+        q00, q01, q11 = (m00 + sd) / norm, m01 / norm, (m11 + sd) / norm  # (A A^T)^(1/2)
+        det = q00 * q11 - q01 * q01
+        r1 = [(q11 * a[0][k] - q01 * a[1][k]) / det for k in range(3)]
+        r2 = [(q00 * a[1][k] - q01 * a[0][k]) / det for k in range(3)]
+        r3 = [
+            r1[1] * r2[2] - r1[2] * r2[1],
+            r1[2] * r2[0] - r1[0] * r2[2],
+            r1[0] * r2[1] - r1[1] * r2[0],
+        ]
+        r = torch.stack([torch.stack(row) for row in (r1, r2, r3)])
+        if self.orthographic:
+            rm = (r * mean[None]).sum(1)  # R times the centroid, (3, B)
+            t_xy = torch.stack([xn.mean(0), yn.mean(0)]) - rm[:2]
+            return r, torch.cat([t_xy, torch.zeros_like(t_xy[:1])])
+        x0, x1, x2 = self.X
+        rx = [x0 * r[i, 0] + x1 * r[i, 1] + x2 * r[i, 2] for i in range(3)]
+        bu, bv = xn * rx[2] - rx[0], yn * rx[2] - rx[1]
+        sx, sy = xn.sum(0), yn.sum(0)
+        count = torch.full_like(sx, xn.shape[0])
+        ata = [
+            [count, None, None],
+            [torch.zeros_like(sx), count, None],
+            [-sx, -sy, (xn.square() + yn.square()).sum(0)],
+        ]
+        low = _cholesky(lambda i, j: ata[i][j], 3)
+        atb = [bu.sum(0), bv.sum(0), -(xn * bu + yn * bv).sum(0)]
+        return r, torch.stack(_backward(low, _forward(low, atb)))
 
     def evaluate(self, r: Tensor, t: Tensor) -> tuple[Tensor, ...]:
         """At poses ``r (3, 3, B)``, ``t (3, B)``: rotated points ``R X (3, n, B)``, inverse
@@ -411,7 +430,8 @@ def refine_pose(
     damping), and stops when a further step would gain less than ``tol`` of its cost.
     Shapes and ``orthographic`` as :func:`solve_pose`."""
     x3, x2, K = _check(points3d, points2d, K)
-    return _refine(_Pinhole.build(x3, x2, K, orthographic), R, t, iterations, tol)
+    problem = _Pinhole.build(x3, x2, K, orthographic)
+    return _refine(problem, R.permute(1, 2, 0).contiguous(), t.T.contiguous(), iterations, tol)
 
 
 @dataclass
@@ -428,18 +448,22 @@ class _Active:
     problem: _Pinhole
     low: list | None = None
 
-    def subset(self, keep: Tensor) -> _Active:
+    def subset(self, keep: Tensor, with_state: bool = True) -> _Active:
+        """The problems at indices ``keep``. Gathering along the batch (last) axis is slow,
+        so the evaluated state is recomputed from the pose instead (the same numbers)."""
         low = None
         if self.low is not None:
             low = [[x[keep] if x is not None else None for x in row] for row in self.low]
+        r, t = self.r.index_select(-1, keep), self.t.index_select(-1, keep)
+        problem = self.problem.select(keep)
         return _Active(
             self.index[keep],
-            self.r[..., keep],
-            self.t[:, keep],
+            r,
+            t,
             self.cost[keep],
             self.lam[keep],
-            tuple(s[..., keep] for s in self.state),
-            self.problem.select(keep),
+            problem.evaluate(r, t) if with_state else (),
+            problem,
             low,
         )
 
@@ -454,10 +478,10 @@ class _Active:
         return r_new, t_new, cost, state, better
 
 
-def _refine(problem: _Pinhole, R: Tensor, t: Tensor, iterations: int, tol: float) -> PoseResult:
+def _refine(problem: _Pinhole, r: Tensor, t: Tensor, iterations: int, tol: float) -> PoseResult:
+    """LM from batch-last poses ``r (3, 3, B)``, ``t (3, B)``; returns batch first."""
     n, b = problem.u.shape
     tol = max(tol, 10 * torch.finfo(problem.u.dtype).eps)  # float32 cannot resolve finer
-    r, t = R.permute(1, 2, 0).contiguous(), t.T.contiguous()  # batch last, as the problem
     state = problem.evaluate(r, t)
     cost = problem.cost(state)
     r_out, t_out, cost_out = r.clone(), t.clone(), cost.clone()
@@ -465,15 +489,11 @@ def _refine(problem: _Pinhole, R: Tensor, t: Tensor, iterations: int, tol: float
     # steps and the stragglers should not cost the whole batch); finished problems are
     # written out once.
     act = _Active(
-        torch.arange(b, device=R.device), r, t, cost, torch.full_like(cost, 1e-3), state, problem
+        torch.arange(b, device=r.device), r, t, cost, torch.full_like(cost, 1e-3), state, problem
     )
 
-    def finish(done: _Active) -> None:
-        r_out[..., done.index], t_out[:, done.index], cost_out[done.index] = (
-            done.r,
-            done.t,
-            done.cost,
-        )
+    def finish(at: Tensor, r: Tensor, t: Tensor, cost: Tensor) -> None:
+        r_out[..., act.index[at]], t_out[:, act.index[at]], cost_out[act.index[at]] = r, t, cost
 
     it = 0
     for it in range(1, iterations + 1):
@@ -489,20 +509,20 @@ def _refine(problem: _Pinhole, R: Tensor, t: Tensor, iterations: int, tol: float
             y = _forward(act.low, g)
             done |= (sum(yi.square() for yi in y) <= tol * act.cost + 1e-30) & (act.lam < 1e-2)
         if done.any():
-            fin = act.subset(done)
+            at = done.nonzero().squeeze(1)
+            fin = act.subset(at, with_state=False)
             if fin.low is not None:
-                step = torch.stack(_backward(fin.low, [-yi[done] for yi in y]))
+                step = torch.stack(_backward(fin.low, [-yi[at] for yi in y]))
                 r_new, t_new, cost_new, _, better = fin.try_step(step)
                 fin.r = torch.where(better, r_new, fin.r)
                 fin.t = torch.where(better, t_new, fin.t)
                 fin.cost = torch.where(better, cost_new, fin.cost)
-            finish(fin)
-            if done.all():
+            finish(at, fin.r, fin.t, fin.cost)
+            if len(at) == len(done):
                 break
-            going = ~done
+            going = (~done).nonzero().squeeze(1)
             act = act.subset(going)
-            U = {k: v[:, going] for k, v in U.items()}
-            V = {k: v[:, going] for k, v in V.items()}
+            U, V = act.problem.jacobian_rows(*act.state)  # cheaper than gathering them
             g = [gi[going] for gi in g]
         jtj = act.problem.gauss_newton(U, V)
         for p in range(6):  # Marquardt's scaled damping, plus a floor for singular problems
@@ -525,10 +545,11 @@ def _refine(problem: _Pinhole, R: Tensor, t: Tensor, iterations: int, tol: float
             act.lam >= 1e8
         )
         if done.any():
-            finish(act.subset(done))
-            if done.all():
+            at = done.nonzero().squeeze(1)
+            finish(at, act.r.index_select(-1, at), act.t.index_select(-1, at), act.cost[at])
+            if len(at) == len(done):
                 break
-            act = act.subset(~done)
+            act = act.subset((~done).nonzero().squeeze(1))
     return PoseResult(r_out.permute(2, 0, 1), t_out.T, cost_out / n, it)
 
 
@@ -559,15 +580,16 @@ def solve_pose(
     """
     x3, x2, K = _check(points3d, points2d, K)
     problem = _Pinhole.build(x3, x2, K, orthographic)
-    r0, t0 = _affine(x3, x2, K, orthographic)
+    r0, t0 = problem.initial_pose()
     best = _refine(problem, r0, t0, iterations, TOL)
+    r0, t0 = r0.permute(2, 0, 1), t0.T  # batch first, for the other starts
     # The DLT start is run only where the first solution fits worse than the batch typically
     # does (a wrong basin shows as a large residual): the common case pays for one start.
     doubt = best.cost > 4 * best.cost.median() + 1e-12
     if doubt.any() and not orthographic:
         idx = doubt.nonzero().flatten()
         r_d, t_d = _dlt(x3[idx], x2[idx], K[idx])
-        cand = _refine(problem.select(idx), r_d, t_d, iterations, TOL)
+        cand = _refine(problem.select(idx), r_d.permute(1, 2, 0), t_d.T, iterations, TOL)
         take = cand.cost < best.cost[idx]
         r_all, t_all, c_all = best.R.clone(), best.t.clone(), best.cost.clone()
         r_all[idx] = torch.where(take[:, None, None], cand.R, r_all[idx])
@@ -589,7 +611,7 @@ def solve_pose(
                 + (r0 @ centre.unsqueeze(-1)).squeeze(-1)
                 - (r_s @ centre.unsqueeze(-1)).squeeze(-1)
             )
-            cand = _refine(problem, r_s, t_s, iterations, TOL)
+            cand = _refine(problem, r_s.permute(1, 2, 0), t_s.T, iterations, TOL)
             take = cand.cost < best.cost
             best = PoseResult(
                 torch.where(take[:, None, None], cand.R, best.R),
