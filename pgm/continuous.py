@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 
 from pgm.factors import EdgeIndex, PairwiseFactor
-from pgm.rotations import qconj, qexp, qmul, qnormalize, qrotate
+from pgm.rotations import qconj, qmul, qnormalize, qrotate
 from pgm.schedules import Constant, Schedule
-from pgm.spaces import so3_log_kernel_from_dot
+from pgm.spaces import ROTATION_KERNELS, rotation_noise, se3_kernel_mixture, se3_kernel_table
 
 __all__ = [
     "ContinuousPairwise",
@@ -69,6 +69,21 @@ class ContinuousPairwise(PairwiseFactor):
     ) -> Tensor:
         """Log density of :meth:`sample_target`. Shapes: (B, E, K, D_t), (B, E, M, D_s) -> (B, E, K, M)."""
         raise NotImplementedError(f"{type(self).__name__} has no conditional density")
+
+    def log_target_mixture(
+        self,
+        x_target: Tensor,
+        x_source: Tensor,
+        log_w_source: Tensor,
+        edges: EdgeIndex,
+        forward: bool,
+    ) -> Tensor:
+        """``log sum_m w_m psi(x_source_m -> x_target_k)``: the density of each target under
+        the mixture of conditionals (the proposal's neighbour component). Override when it
+        can be computed without the full table. Shapes: (B, E, K, D_t), (B, E, M, D_s),
+        (B, E, M) -> (B, E, K)."""
+        dens = self.log_target_density(x_target, x_source, edges, forward)
+        return torch.logsumexp(dens + log_w_source.unsqueeze(-2), -1)
 
 
 class LinearGaussian(ContinuousPairwise):
@@ -137,14 +152,17 @@ class RigidConnection(ContinuousPairwise):
 
     ``psi(x_a, x_b) = N(p_a + R_a o_a - (p_b + R_b o_b); 0, s_p^2 I) * k(R_a r, R_b; s_r)``:
     the joint seen from part a (point ``o_a`` in a's frame) meets the joint seen from part b
-    (``o_b`` in b's frame); ``k`` is the SO(3) kernel of :func:`pgm.spaces.so3_log_kernel`
-    around the mean relative rotation ``r``. Both spreads are multiplied by the schedule.
+    (``o_b`` in b's frame); ``k`` is the rotation kernel of the kind ``rotation`` (see
+    :func:`pgm.spaces.rotation_noise`: an isotropic Bingham density by default, or the
+    Gaussian of rotation vectors) around the mean relative rotation ``r``. Both spreads are
+    multiplied by the schedule.
 
     Args:
         offset_a, offset_b: ``(3,)`` or ``(E, 3)`` joint position in each part's frame (metres).
         pos_std: metres. rot_std: radians (``None``: rotation unconstrained -- then this
             factor cannot sample, as the conditional is improper).
         rel_rot: ``(4,)`` or ``(E, 4)`` mean relative rotation ``R_a^T R_b`` (default identity).
+        rotation: ``"bingham"`` or ``"gaussian"``, the rotation kernel's family.
     """
 
     def __init__(
@@ -155,8 +173,12 @@ class RigidConnection(ContinuousPairwise):
         rot_std: float | None = None,
         rel_rot=None,
         schedule=None,
+        rotation: str = "bingham",
     ):
         super().__init__(schedule)
+        if rotation not in ROTATION_KERNELS:
+            raise ValueError(f"rotation must be one of {ROTATION_KERNELS}; got {rotation!r}")
+        self.rotation = rotation
         dt = torch.get_default_dtype()
         self.offset_a = torch.as_tensor(offset_a, dtype=dt)
         self.offset_b = torch.as_tensor(offset_b, dtype=dt)
@@ -189,34 +211,47 @@ class RigidConnection(ContinuousPairwise):
         return x[..., :3] + qrotate(x[..., 3:7], offset.expand(*x.shape[:-1], 3))
 
     def log_potential(self, edges, xa, xb, num_states):
-        ja = self._joint(xa, self._param(self.offset_a, edges, xa))  # (B, E, K, 3)
+        (ja, qa), (jb, qb) = self._ends(edges, xa, xb)
+        return se3_kernel_table(ja, qa, jb, qb, *self._spreads(), self.rotation)  # [i, j]
+
+    def _ends(self, edges, xa, xb) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
+        """What the kernel compares: the joint seen from each part and the rotations
+        ``R_a r`` and ``R_b``. Shapes: (B, E, K, 3) and (B, E, K, 4) per end."""
+        ja = self._joint(xa, self._param(self.offset_a, edges, xa))
         jb = self._joint(xb, self._param(self.offset_b, edges, xb))
-        s_p = self.pos_std * self.anneal
-        out = torch.cdist(ja, jb).square_()  # (B, E, K, K) [i, j], then in place
-        out.mul_(-0.5 / s_p**2).sub_(3 * math.log(s_p) + 1.5 * _LOG_2PI)
+        qa = xa[..., 3:7]
         if self.rot_std is not None:
-            qa = qmul(xa[..., 3:7], self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
-            dot = qa @ xb[..., 3:7].transpose(-1, -2)
-            out.add_(so3_log_kernel_from_dot(dot, self.rot_std * self.anneal))
-        return out
+            qa = qmul(qa, self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
+        return (ja, qa), (jb, xb[..., 3:7])
+
+    def _spreads(self) -> tuple[float, float | None]:
+        s_r = None if self.rot_std is None else self.rot_std * self.anneal
+        return self.pos_std * self.anneal, s_r
+
+    def log_target_mixture(self, x_target, x_source, log_w_source, edges, forward):
+        # The kernel is symmetric in its ends: the mixture over sources is one call.
+        xa, xb = (x_source, x_target) if forward else (x_target, x_source)
+        (ja, qa), (jb, qb) = self._ends(edges, xa, xb)
+        target, source = ((jb, qb), (ja, qa)) if forward else ((ja, qa), (jb, qb))
+        return se3_kernel_mixture(*target, *source, log_w_source, *self._spreads(), self.rotation)
 
     def sample_target(self, x_source, edges, forward, generator):
         s_p, s_r = self.pos_std * self.anneal, self.rot_std * self.anneal
         lead = x_source.shape[:-1]
         rel = self._param(self.rel_rot, edges, x_source).expand(*lead, 4)
-        er = torch.randn(
-            (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
+        noise = rotation_noise(
+            lead, float(s_r), self.rotation, generator, x_source.dtype, x_source.device
         )
         ep = torch.randn(
             (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
         )
         q_s = x_source[..., 3:7]
         if forward:  # b given a: R_b = exp(e) R_a r;  p_b = joint_a - R_b o_b + noise
-            q_t = qnormalize(qmul(qexp(er * s_r), qmul(q_s, rel)))
+            q_t = qnormalize(qmul(noise, qmul(q_s, rel)))
             joint = self._joint(x_source, self._param(self.offset_a, edges, x_source))
             o_t = self._param(self.offset_b, edges, x_source)
         else:  # a given b: R_a = exp(e) R_b r^-1
-            q_t = qnormalize(qmul(qexp(er * s_r), qmul(q_s, qconj(rel))))
+            q_t = qnormalize(qmul(noise, qmul(q_s, qconj(rel))))
             joint = self._joint(x_source, self._param(self.offset_b, edges, x_source))
             o_t = self._param(self.offset_a, edges, x_source)
         p_t = joint - qrotate(q_t, o_t.expand(*lead, 3)) + s_p * ep

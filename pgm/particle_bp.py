@@ -278,10 +278,18 @@ def particle_bp(
             space.validate(initial[:, nodes][..., : space.dim], "initial particles")
     directed, max_in = graph.directed_edges()
     try:
-        _ = FactorGraph(torch.zeros(1, v, 1), graph.pairwise).tree_schedule
+        schedule = FactorGraph(torch.zeros(1, v, 1), graph.pairwise).tree_schedule
         is_tree = True
     except NotATreeError:
         is_tree = False
+    # On a tree, store each group's tables in the order BP visits the edges: every level's
+    # edges are then a run, and the message products read views instead of copies.
+    orders = {}
+    if is_tree:
+        for g in range(len(graph.pairwise)):
+            visits = [op.local_edges for ops in schedule.ops for op in ops if op.group == g]
+            if visits:
+                orders[g] = torch.cat(visits)
 
     if batch_chunk is None:  # ~20 MB of (E, K, K) tables per chunk (measured best here)
         per_frame = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
@@ -331,7 +339,7 @@ def particle_bp(
             for c in chunks:
                 fg = FactorGraph(
                     unary[c],
-                    _cached_tables(graph, values[c], k),
+                    _cached_tables(graph, values[c], k, orders),
                     log_measure=measure[c],
                     values=values[c],
                 )
@@ -394,16 +402,23 @@ def _scaled(scale, factor: float):
     return torch.as_tensor(scale) * factor
 
 
-def _cached_tables(graph: ParticleGraph, values: Tensor, k: int) -> list:
+def _cached_tables(
+    graph: ParticleGraph, values: Tensor, k: int, orders: dict[int, Tensor] | None = None
+) -> list:
     """Dense factors evaluated once per iteration: tree BP would otherwise evaluate each
-    table twice (upward and downward), loopy BP once per inner iteration."""
+    table twice (upward and downward), loopy BP once per inner iteration. ``orders[g]``:
+    a permutation of group g's edges to store them in (the marginals do not depend on it)."""
     groups = []
     for g, (edges, factor) in enumerate(graph.pairwise):
         if isinstance(factor, ContinuousPairwise) or isinstance(
             getattr(factor, "base", None), ContinuousPairwise
         ):
             e = torch.as_tensor(edges).long()
-            table = factor.log_potential(slice(None), values[:, e[:, 0]], values[:, e[:, 1]], k)
+            which = slice(None)
+            if orders and g in orders:
+                which = orders[g]
+                e = e[which]
+            table = factor.log_potential(which, values[:, e[:, 0]], values[:, e[:, 1]], k)
             if torch.isnan(table.sum()):
                 raise ValueError(
                     f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN"
@@ -479,10 +494,12 @@ def _propose(
     proposal_centres,
     generator,
 ):
-    """New particles for every continuous node and their mixture log density ``log q``."""
-    b, v, k, d = values.shape
+    """New particles for every continuous node and their mixture log density ``log q``.
+
+    Each new particle's mixture component is drawn first and only that component is
+    sampled (K draws per node, not K per component)."""
+    b, v, k, _ = values.shape
     ncomp = 1 + max_in
-    pool = values.new_zeros(b, v, ncomp, k, d)
     comp_logq = values.new_full((b, v, ncomp, k), -math.inf)  # filled after sampling
     weights = values.new_zeros(v, ncomp)
     continuous = torch.zeros(v, dtype=torch.bool)
@@ -502,62 +519,70 @@ def _propose(
         )
         return _gather_particles(x_rows, idx), flat
 
-    # Component 0: own marginal, resampled and perturbed.
-    own = {}
-    for g, (space, nodes) in enumerate(graph.spaces):
-        if space.discrete:
-            continue
-        c_x, c_w = centres(log_w[:, nodes], values[:, nodes][..., : space.dim])
-        own[g] = (c_x, c_w)
-        picked = _gather_particles(c_x, _resample_index(c_w, k, generator))
-        pool[:, nodes, 0, :, : space.dim] = space.perturb(
-            picked, _scaled(scales[g], kernel_mult), generator
-        )
+    def chosen(c_x: Tensor, c_w: Tensor, mask: Tensor) -> tuple[Tensor, ...]:
+        """Centres resampled for the slots in ``mask`` (B, R, K): their (b, r, k) positions
+        and values (n, D)."""
+        bi, ri, ki = mask.nonzero(as_tuple=True)
+        idx = _resample_index(c_w, k, generator)
+        return bi, ri, ki, c_x[bi, ri, idx[bi, ri, ki]]
+
+    # Mixture weights: component 0 is the node's own marginal (resampled and perturbed),
+    # components 1.. its neighbours' marginals pushed through psi.
     weights[:, 0] = 1.0
-    # Components 1..: neighbours pushed through psi.
     usable = []
     if proposal == "mixture":
         for de in directed:
             factor = graph.pairwise[de.group][1]
-            if not getattr(factor, "can_sample", False):
-                continue
-            tgt_ok = continuous[de.target]
-            if not tgt_ok.any():
-                continue
-            c_x, c_w = centres(log_w[:, de.source], values[:, de.source])
-            x_src = _gather_particles(c_x, _resample_index(c_w, k, generator))  # (B, E, K, D)
-            sample = factor.sample_target(x_src, slice(None), de.forward, generator)
-            pool[:, de.target, de.slot, :, : sample.shape[-1]] = sample
-            weights[de.target, de.slot] = 1.0
-            usable.append((de, c_x, c_w))
+            if getattr(factor, "can_sample", False) and continuous[de.target].any():
+                weights[de.target, de.slot] = 1.0
+                usable.append(de)
         has_nb = weights[:, 1:].sum(-1) > 0
         nb_count = weights[:, 1:].sum(-1).clamp_min(1)
         weights[:, 1:] = weights[:, 1:] * ((1 - self_weight) / nb_count)[:, None]
         weights[:, 0] = torch.where(
             has_nb, torch.full_like(weights[:, 0], self_weight), weights[:, 0]
         )
-
-    # Draw each slot's component, then take that component's candidate.
     comp = torch.multinomial(
         weights.double().clamp_min(0), b * k, replacement=True, generator=generator
     )
     comp = comp.reshape(v, b, k).permute(1, 0, 2)  # (B, V, K)
-    new = pool.gather(2, comp[:, :, None, :, None].expand(b, v, 1, k, d)).squeeze(2)
-    new = torch.where(continuous[None, :, None, None], new, values)
+
+    new = values.clone()
+    own = {}
+    for g, (space, nodes) in enumerate(graph.spaces):
+        if space.discrete:
+            continue
+        c_x, c_w = centres(log_w[:, nodes], values[:, nodes][..., : space.dim])
+        own[g] = (c_x, c_w)
+        bi, ni, ki, picked = chosen(c_x, c_w, comp[:, nodes] == 0)
+        moved = space.perturb(picked, _scaled(scales[g], kernel_mult), generator)
+        new[bi, nodes[ni], ki, : space.dim] = moved
+    pushed = []
+    for de in usable:
+        factor = graph.pairwise[de.group][1]
+        c_x, c_w = centres(log_w[:, de.source], values[:, de.source])
+        pushed.append((de, c_x, c_w))
+        mask = (comp[:, de.target] == de.slot[None, :, None]) & continuous[de.target][None, :, None]
+        bi, ei, ki, x_src = chosen(c_x, c_w, mask)
+        if len(bi) == 0:
+            continue
+        # one flat batch of (source particle, its edge) pairs: E = n, M = 1
+        sample = factor.sample_target(x_src[None, :, None], ei, de.forward, generator)[0, :, 0]
+        new[bi, de.target[ei], ki, : sample.shape[-1]] = sample
 
     # Mixture density of every new particle under every component.
     for g, (space, nodes) in enumerate(graph.spaces):
         if space.discrete:
             continue
         c_x, c_w = own[g]
-        kern = space.log_kernel(
-            new[:, nodes][..., : space.dim], c_x, _scaled(scales[g], kernel_mult)
+        comp_logq[:, nodes, 0] = space.log_kernel_mixture(  # (B, N, K)
+            new[:, nodes][..., : space.dim], c_x, c_w, _scaled(scales[g], kernel_mult)
         )
-        comp_logq[:, nodes, 0] = torch.logsumexp(kern + c_w.unsqueeze(-2), -1)  # (B, N, K)
-    for de, c_x, c_w in usable:
+    for de, c_x, c_w in pushed:
         factor = graph.pairwise[de.group][1]
-        dens = factor.log_target_density(new[:, de.target], c_x, slice(None), de.forward)
-        comp_logq[:, de.target, de.slot] = torch.logsumexp(dens + c_w.unsqueeze(-2), -1)
+        comp_logq[:, de.target, de.slot] = factor.log_target_mixture(
+            new[:, de.target], c_x, c_w, slice(None), de.forward
+        )
     log_weights = torch.log(weights.to(values.dtype))[None, :, :, None]  # (1, V, C, 1)
     log_q = torch.logsumexp(comp_logq + log_weights, dim=2)
     old_log_q_discrete = torch.where(torch.isinf(log_w), math.inf, 0.0)

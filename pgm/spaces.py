@@ -7,7 +7,8 @@ weighted mean that respects the manifold, and a distance.
 * :class:`Euclidean` -- R^D.
 * :class:`SE3` -- rigid poses stored as 7 numbers ``(x, y, z, qw, qx, qy, qz)``: position in
   metres and a unit quaternion (see :mod:`pgm.rotations` for the conventions). Perturbations
-  are isotropic Gaussians in the tangent space (position, rotation vector).
+  are isotropic: a Gaussian in position and, in rotation, an isotropic Bingham density
+  (default) or a Gaussian on the rotation vector (see :func:`rotation_noise`).
 * :class:`Discrete` -- ``n`` states; the support is all of them (index stored as a float),
   never resampled.
 
@@ -29,11 +30,20 @@ __all__ = [
     "Discrete",
     "Euclidean",
     "StateSpace",
+    "bingham_log_kernel_from_dot",
+    "bingham_log_normaliser",
+    "gaussian_position_table",
+    "rotation_log_kernel_from_dot",
+    "rotation_noise",
+    "se3_kernel_mixture",
+    "se3_kernel_table",
     "so3_log_kernel",
     "so3_log_kernel_from_dot",
 ]
 
 _LOG_2PI = math.log(2 * math.pi)
+#: rotation kernel families (see :func:`rotation_noise`)
+ROTATION_KERNELS = ("bingham", "gaussian")
 
 
 def _as_scale(scale, n: int, like: Tensor) -> Tensor:
@@ -84,6 +94,214 @@ def so3_log_kernel_from_dot(dot: Tensor, std: Tensor | float) -> Tensor:
     return _so3_log_kernel_half(torch.acos_(dot.abs().clamp_(max=1.0)), std)
 
 
+def bingham_log_normaliser(std) -> Tensor:
+    """``log c`` of :func:`rotation_noise`'s ``"bingham"`` kernel (float64 for any input):
+    ``c = int_{S^3} exp(-kappa (1 - d^2)) dS = 2 pi^2 (i0e(kappa/2) - i1e(kappa/2))`` with
+    ``kappa = 2 / std^2`` (in polar form ``1 - d^2 = sin^2 h``, ``dS = 4 pi sin^2 h dh``;
+    the exponentially scaled Bessel functions keep large ``kappa`` finite), plus ``log 4``:
+    the density is taken w.r.t. the measure of :func:`so3_log_kernel`, ``dR = 8 dS``, and the
+    sphere covers each rotation twice."""
+    half = 1.0 / torch.as_tensor(std, dtype=torch.float64).square()  # kappa / 2
+    c = 2 * math.pi**2 * (torch.special.i0e(half) - torch.special.i1e(half))
+    return torch.log(c) + math.log(4.0)
+
+
+def bingham_log_kernel_from_dot(dot: Tensor, std) -> Tensor:
+    """Log density of :func:`rotation_noise`'s ``"bingham"`` kernel around a centre ``q_c``
+    from the dot products ``d = <q, q_c>``: ``kappa (d^2 - 1) - log c`` with
+    ``kappa = 2 / std^2`` -- near the centre the Gaussian of rotation vectors of per-axis
+    ``std`` (``1 - d^2 = sin^2(a / 2) ~ a^2 / 4``), exactly normalised on the whole
+    sphere (:func:`bingham_log_normaliser`). Two passes over ``dot``, which it overwrites."""
+    kappa = 2.0 / torch.as_tensor(std, dtype=torch.float64).square()
+    const = (kappa + bingham_log_normaliser(std)).to(dot.dtype)
+    return dot.square_().mul_(kappa.to(dot.dtype)).sub_(const)
+
+
+def rotation_log_kernel_from_dot(dot: Tensor, std, kind: str = "bingham") -> Tensor:
+    """The rotation kernel ``kind`` (``"bingham"`` or ``"gaussian"``) from quaternion dot
+    products; may overwrite ``dot``. See :func:`rotation_noise`."""
+    if kind == "bingham":
+        return bingham_log_kernel_from_dot(dot, std)
+    return so3_log_kernel_from_dot(dot, std)
+
+
+def _bingham_around_identity(n: int, std, generator, dtype, device) -> Tensor:
+    """``n`` draws of the isotropic Bingham density ``exp(-kappa (1 - w^2))`` on unit
+    quaternions ``(w, x, y, z)``, by rejection from an angular central Gaussian envelope
+    (Kent, Ganeiber & Mardia 2018, "A new unified approach for the simulation of a wide
+    class of directional distributions", J. Comput. Graph. Stat. 27(2)): with ``b`` the root
+    of ``1/b + 3/(b + 2 kappa) = 1``, propose ``z / |z|``, ``z ~ N(0, diag(1, s, s, s))``,
+    ``s = b / (b + 2 kappa)``, and accept with probability
+    ``exp(-kappa (1 - w^2)) (y^T Omega y)^2 / M``, ``M = exp((b - 4) / 2) (4 / b)^2``.
+    Acceptance is about 45 % for concentrated kernels (std <= 0.3) and rises to 1 as
+    std grows; rounds of draws repeat until all are taken."""
+    kappa = 2.0 / float(std) ** 2
+    b = 0.5 * (-(2 * kappa - 4) + math.sqrt((2 * kappa - 4) ** 2 + 8 * kappa))
+    s = b / (b + 2 * kappa)
+    log_m = 0.5 * (b - 4) + 2 * math.log(4 / b)
+    out = torch.empty(n, 4, dtype=dtype, device=device)
+    missing = torch.arange(n, device=device)
+    while len(missing):
+        m = len(missing)
+        draw = int(m / 0.44) + 32  # one round, mostly
+        z = torch.randn(draw, 4, generator=generator, dtype=torch.float64, device=device)
+        z[:, 1:] *= math.sqrt(s)
+        y = z / z.norm(dim=-1, keepdim=True)
+        off = 1.0 - y[:, 0].square()  # sin^2 of the half angle
+        omega = 1.0 + (1.0 / s - 1.0) * off  # y^T Omega y
+        log_accept = -kappa * off + 2.0 * torch.log(omega) - log_m
+        u = torch.rand(draw, generator=generator, dtype=torch.float64, device=device)
+        taken = y[torch.log(u) < log_accept][:m]
+        out[missing[: len(taken)]] = taken.to(dtype)
+        missing = missing[len(taken) :]
+    return out
+
+
+def rotation_noise(
+    shape: tuple[int, ...],
+    std,
+    kind: str = "bingham",
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype | None = None,
+    device=None,
+) -> Tensor:
+    """Random rotations around the identity, ``(*shape, 4)`` unit quaternions, to be
+    left-multiplied onto a centre (both kinds are isotropic: the result's density is a
+    function of the angle to that centre).
+
+    ``"bingham"``: density ``exp(-kappa sin^2(a / 2))``, ``kappa = 2 / std^2``
+    (:func:`bingham_log_kernel_from_dot`): near the centre the Gaussian of rotation vectors
+    with ``std`` per axis, exactly normalised and sampled, and its log density is quadratic
+    in quaternion dot products -- so a whole kernel table is one batched matrix product.
+    ``"gaussian"``: ``exp(e)`` with ``e ~ N(0, std^2 I_3)`` (:func:`so3_log_kernel`, whose
+    evaluation needs ``acos`` and a series per entry).
+    ``std``: radians, a scalar.
+    """
+    if kind not in ROTATION_KERNELS:
+        raise ValueError(f"rotation kernel must be one of {ROTATION_KERNELS}; got {kind!r}")
+    dtype = dtype or torch.get_default_dtype()
+    if kind == "gaussian":
+        e = torch.randn((*shape, 3), generator=generator, dtype=dtype, device=device)
+        return qexp(e * torch.as_tensor(std, dtype=dtype, device=device))
+    n = math.prod(shape)
+    return _bingham_around_identity(n, std, generator, dtype, device).reshape(*shape, 4)
+
+
+def _quadratic_features(q: Tensor) -> Tensor:
+    """``f(q)`` with ``<f(a), f(b)> = <a, b>^2``: ``(..., 4) -> (..., 10)``."""
+    i, j = torch.triu_indices(4, 4, 1, device=q.device)
+    return torch.cat([q.square(), math.sqrt(2.0) * q[..., i] * q[..., j]], -1)
+
+
+def _se3_features(
+    pos_a: Tensor,
+    quat_a: Tensor | None,
+    pos_b: Tensor,
+    quat_b: Tensor | None,
+    pos_std,
+    rot_std,
+    log_weights_b: Tensor | None = None,
+) -> tuple[Tensor, Tensor, tuple[int, ...]]:
+    """Features ``L (N, K, F)``, ``R (N, M, F)`` (leading dims flattened to ``N``) with
+    ``L R^T = log N(p_a - p_b; 0, s_p^2 I_3) + log k(q_a, q_b) + log_w_b`` for the Bingham
+    rotation kernel ``k`` (``rot_std=None``: position only).
+
+    ``-|a - b|^2 / 2 s^2 = a.b / s^2 - |a|^2 / 2 s^2 - |b|^2 / 2 s^2`` and
+    ``kappa <q_a, q_b>^2`` is linear in :func:`_quadratic_features`, so the whole table is
+    one batched matrix product with 15 features: a single write of ``(..., K, M)``. Positions
+    are centred on a common point first, so float32 keeps small differences of large ones."""
+    std = torch.as_tensor(pos_std, dtype=pos_a.dtype, device=pos_a.device)
+    origin = pos_b.mean(-2, keepdim=True)
+    a, b = pos_a - origin, pos_b - origin
+    inv = 1.0 / std.square()
+    const = 3.0 * torch.log(std) + 1.5 * _LOG_2PI
+    left, right = [a * inv], [b]
+    if rot_std is not None:
+        kappa = 2.0 / torch.as_tensor(rot_std, dtype=torch.float64).square()
+        const = const + (kappa + bingham_log_normaliser(rot_std)).to(a.dtype)
+        left.append(_quadratic_features(quat_a) * kappa.to(a.dtype))
+        right.append(_quadratic_features(quat_b))
+    sq_a = a.square().sum(-1, keepdim=True) * (-0.5 * inv) - const
+    sq_b = b.square().sum(-1, keepdim=True) * (-0.5 * inv)
+    if log_weights_b is not None:
+        sq_b = sq_b + log_weights_b.unsqueeze(-1)
+    left += [sq_a, torch.ones_like(sq_a)]
+    right += [torch.ones_like(sq_b), sq_b]
+    left, right = torch.cat(left, -1), torch.cat(right, -1)
+    lead = torch.broadcast_shapes(left.shape[:-2], right.shape[:-2])
+    left = left.expand(*lead, *left.shape[-2:]).reshape(-1, *left.shape[-2:])
+    right = right.expand(*lead, *right.shape[-2:]).reshape(-1, *right.shape[-2:])
+    return left, right, lead
+
+
+def se3_kernel_table(
+    pos_a: Tensor,
+    quat_a: Tensor | None,
+    pos_b: Tensor,
+    quat_b: Tensor | None,
+    pos_std,
+    rot_std,
+    kind: str = "bingham",
+) -> Tensor:
+    """``log N(p_a - p_b; 0, pos_std^2 I_3) + log k(q_a, q_b)`` for every pair, with ``k``
+    the rotation kernel ``kind`` (``rot_std=None``: position only). Shapes: ``(..., K, 3)``,
+    ``(..., K, 4)``, ``(..., M, 3)``, ``(..., M, 4)`` -> ``(..., K, M)``. With the Bingham
+    kernel (or none) one batched matrix product (see :func:`_se3_features`)."""
+    if rot_std is not None and kind != "bingham":
+        out = se3_kernel_table(pos_a, None, pos_b, None, pos_std, None)
+        dot = quat_a @ quat_b.transpose(-1, -2)
+        return out.add_(rotation_log_kernel_from_dot(dot, rot_std, kind))
+    left, right, lead = _se3_features(pos_a, quat_a, pos_b, quat_b, pos_std, rot_std)
+    out = torch.bmm(left, right.transpose(-1, -2))
+    return out.reshape(*lead, *out.shape[-2:])
+
+
+def gaussian_position_table(a: Tensor, b: Tensor, std) -> Tensor:
+    """``log N(a_k - b_m; 0, std^2 I_3)`` for every pair: ``(..., K, 3)``, ``(..., M, 3)``
+    -> ``(..., K, M)`` (one batched matrix product, see :func:`_se3_features`)."""
+    return se3_kernel_table(a, None, b, None, std, None)
+
+
+def se3_kernel_mixture(
+    pos_a: Tensor,
+    quat_a: Tensor | None,
+    pos_b: Tensor,
+    quat_b: Tensor | None,
+    log_weights_b: Tensor,
+    pos_std,
+    rot_std,
+    kind: str = "bingham",
+) -> Tensor:
+    """``log sum_m w_m k(a_k, b_m)`` for the kernel of :func:`se3_kernel_table`: the density
+    of each ``a`` under the kernel mixture centred on the ``b`` with weights ``log_weights_b``
+    ``(..., M)``; returns ``(..., K)``.
+
+    With the Bingham kernel (or none) no table entry exceeds the kernel's analytic peak
+    (0 in the features' units) plus the largest weight, which is therefore the log-sum-exp's
+    shift: one matrix product, ``exp`` in place and a sum, without a pass for the maximum.
+    Points whose terms are all more than 60 nats below the peak are recomputed exactly."""
+    if rot_std is not None and kind != "bingham":
+        table = se3_kernel_table(pos_a, quat_a, pos_b, quat_b, pos_std, rot_std, kind)
+        return torch.logsumexp(table + log_weights_b.unsqueeze(-2), -1)
+    w_peak = log_weights_b.amax(-1, keepdim=True)
+    w_peak = torch.where(torch.isfinite(w_peak), w_peak, torch.zeros_like(w_peak))
+    left, right, lead = _se3_features(
+        pos_a, quat_a, pos_b, quat_b, pos_std, rot_std, log_weights_b - w_peak
+    )
+    # Arguments are raised to -87 before exp (below it the CPU exp takes a slow path): each
+    # such term then adds 1.6e-38 instead of less. Rows whose sum is below e^-60 -- where
+    # that could show -- are recomputed exactly.
+    s = torch.bmm(left, right.transpose(-1, -2)).clamp_(min=-87.0).exp_().sum(-1)  # (N, K)
+    out = torch.log(s)
+    lost = s < math.exp(-60.0)
+    if lost.any():
+        n, k = lost.nonzero(as_tuple=True)
+        exact = (left[n, k].unsqueeze(1) @ right[n].transpose(-1, -2)).squeeze(1)
+        out[n, k] = torch.logsumexp(exact, -1)
+    w_peak = w_peak.expand(*lead, 1).reshape(-1, 1)
+    return (out + w_peak).reshape(*lead, out.shape[-1])
+
+
 class StateSpace:
     """Interface of a particle state space."""
 
@@ -104,6 +322,12 @@ class StateSpace:
         Shapes: x (..., K, D), centres (..., M, D) -> (..., K, M).
         """
         raise NotImplementedError
+
+    def log_kernel_mixture(self, x: Tensor, centres: Tensor, log_weights: Tensor, scale) -> Tensor:
+        """``log sum_m w_m kernel(x_k | centre_m)``. Shapes: x (..., K, D), centres (..., M, D),
+        log_weights (..., M) -> (..., K). Override when the table can be skipped."""
+        table = self.log_kernel(x, centres, scale)
+        return torch.logsumexp(table + log_weights.unsqueeze(-2), -1)
 
     def weighted_mean(self, x: Tensor, log_weights: Tensor) -> Tensor:
         """Mean of weighted points on the manifold. Shapes: (..., K, D), (..., K) -> (..., D)."""
@@ -157,26 +381,47 @@ class SE3(StateSpace):
     """Rigid poses ``(x, y, z, qw, qx, qy, qz)``: metres and a unit quaternion.
 
     Kernel scale: ``(position std in metres, rotation std in radians)``. Perturbation:
-    ``p + e_p``, ``exp(e_r) * q`` with ``e_p ~ N(0, s_p^2 I_3)``, ``e_r ~ N(0, s_r^2 I_3)``.
+    ``p + e_p`` with ``e_p ~ N(0, s_p^2 I_3)``, and ``n * q`` with ``n`` from
+    :func:`rotation_noise` of the kind ``rotation``: ``"bingham"`` (default: near the centre
+    the Gaussian of rotation vectors with std ``s_r`` per axis, exactly normalised, and a
+    kernel table is one matrix product) or ``"gaussian"`` (``exp(e_r)``,
+    ``e_r ~ N(0, s_r^2 I_3)``).
     """
 
     dim = 7
     tangent_dim = 6
 
+    def __init__(self, rotation: str = "bingham"):
+        if rotation not in ROTATION_KERNELS:
+            raise ValueError(f"rotation must be one of {ROTATION_KERNELS}; got {rotation!r}")
+        self.rotation = rotation
+
     def perturb(self, x, scale, generator=None):
         s = _as_scale(scale, 2, x)
-        shape = (*x.shape[:-1], 3)
-        ep = torch.randn(shape, generator=generator, dtype=x.dtype, device=x.device) * s[0]
-        er = torch.randn(shape, generator=generator, dtype=x.dtype, device=x.device) * s[1]
-        q = qnormalize(qmul(qexp(er), x[..., 3:]))
+        lead = x.shape[:-1]
+        ep = torch.randn((*lead, 3), generator=generator, dtype=x.dtype, device=x.device) * s[0]
+        noise = rotation_noise(lead, float(s[1]), self.rotation, generator, x.dtype, x.device)
+        q = qnormalize(qmul(noise, x[..., 3:]))
         return torch.cat([x[..., :3] + ep, q], -1)
 
     def log_kernel(self, x, centres, scale):
         s = _as_scale(scale, 2, x)
-        out = torch.cdist(x[..., :3], centres[..., :3]).square_()  # (..., K, M), in place
-        out.mul_(-0.5 / s[0] ** 2).sub_(3 * torch.log(s[0]) + 1.5 * _LOG_2PI)
-        dot = x[..., 3:] @ centres[..., 3:].transpose(-1, -2)
-        return out.add_(so3_log_kernel_from_dot(dot, s[1]))
+        return se3_kernel_table(
+            x[..., :3], x[..., 3:], centres[..., :3], centres[..., 3:], s[0], s[1], self.rotation
+        )
+
+    def log_kernel_mixture(self, x, centres, log_weights, scale):
+        s = _as_scale(scale, 2, x)
+        return se3_kernel_mixture(
+            x[..., :3],
+            x[..., 3:],
+            centres[..., :3],
+            centres[..., 3:],
+            log_weights,
+            s[0],
+            s[1],
+            self.rotation,
+        )
 
     def weighted_mean(self, x, log_weights):
         w = torch.softmax(log_weights, -1)
@@ -210,7 +455,7 @@ class SE3(StateSpace):
             )
 
     def __repr__(self) -> str:
-        return "SE3()"
+        return f"SE3(rotation={self.rotation!r})"
 
 
 class Discrete(StateSpace):

@@ -71,14 +71,18 @@ def test_particle_bp_on_a_space_time_gaussian_graph():
         groups,
         [(torch.arange(v), GaussianUnary(obs[:, None], 1.0))],
     )
-    g = torch.Generator().manual_seed(1)
-    res = particle_bp(
-        graph,
-        2.0 * torch.randn(1, v, 300, 1, generator=g, dtype=F64),
-        iterations=8,
-        generator=g,
-        kernel_scale=0.3,
-    )
+    runs = []
+    for seed in (1, 2, 3):  # particle noise is correlated along the graph: several runs
+        g = torch.Generator().manual_seed(seed)
+        runs.append(
+            particle_bp(
+                graph,
+                2.0 * torch.randn(1, v, 300, 1, generator=g, dtype=F64),
+                iterations=8,
+                generator=g,
+                kernel_scale=0.3,
+            )
+        )
     all_edges = torch.cat([e for e, _ in groups])
     # per-edge spreads differ (0.8 in frame, 0.5 in time): exact answer by information form
     j = torch.zeros(v, v, dtype=F64)
@@ -92,8 +96,9 @@ def test_particle_bp_on_a_space_time_gaussian_graph():
         j[b, a] -= w
     cov = torch.linalg.inv(j)
     mu, sd = cov @ obs, cov.diag().sqrt()
-    m, _ = weighted_moments(res)
-    assert ((m[0] - mu).abs() / sd).max() < 0.2
+    worst = torch.stack([((weighted_moments(r)[0][0] - mu).abs() / sd).max() for r in runs])
+    # each run within 0.35 posterior sd of the exact means, on average within 0.2
+    assert worst.max() < 0.35 and worst.mean() < 0.2, worst
 
 
 def test_template_errors():
