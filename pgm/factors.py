@@ -156,9 +156,11 @@ class TableFactor(PairwiseFactor):
             ``(B, E, K, K)`` per batch item and edge. Entry ``[..., i, j]`` is
             ``log psi(x_a = i, x_b = j)``; ``-inf`` forbids the pair.
         validate: check for NaN / +inf (skip only for tables the caller has checked).
+        finite: the caller knows whether the table has no ``-inf`` (saves a pass over it);
+            ``None``: found out when first needed.
     """
 
-    def __init__(self, log_table: Tensor, validate: bool = True):
+    def __init__(self, log_table: Tensor, validate: bool = True, finite: bool | None = None):
         if not isinstance(log_table, Tensor):
             raise TypeError(f"log_table must be a torch.Tensor, got {type(log_table).__name__}")
         if log_table.dim() not in (2, 3, 4) or log_table.shape[-1] != log_table.shape[-2]:
@@ -172,6 +174,7 @@ class TableFactor(PairwiseFactor):
             log_table = log_table.unsqueeze(0)
         self.table = log_table  # (B or 1, E or 1, K, K)
         self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
+        self._finite = finite
 
     #: below this many states the plain log-sum-exp message is as fast as the matmul one
     MATMUL_MIN_STATES = 32
@@ -199,7 +202,9 @@ class TableFactor(PairwiseFactor):
             # exp() of arguments below -87 (float32 underflow) takes a scalar slow path, ~40x
             # slower: raise them to -87, whose exp (1.6e-38) is nothing beside each column's
             # peak entry (exactly 1); forbidden pairs (-inf) are put back to exactly 0.
-            forbidden = torch.isneginf(t) if bool(torch.isneginf(self.table).any()) else None
+            if self._finite is None:
+                self._finite = bool(self.table.amin() > -math.inf)
+            forbidden = None if self._finite else torch.isneginf(t)
             scaled.clamp_(min=EXP_FLOOR).exp_()
             if forbidden is not None:
                 scaled.masked_fill_(forbidden, 0.0)

@@ -419,11 +419,12 @@ def _cached_tables(
                 which = orders[g]
                 e = e[which]
             table = factor.log_potential(which, values[:, e[:, 0]], values[:, e[:, 1]], k)
-            if torch.isnan(table.sum()):
+            total = float(table.sum())  # one pass: NaN or +inf show in it, and -inf
+            if math.isnan(total) or total == math.inf:
                 raise ValueError(
-                    f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN"
+                    f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN or +inf"
                 )
-            groups.append((e, TableFactor(table, validate=False)))
+            groups.append((e, TableFactor(table, validate=False, finite=math.isfinite(total))))
         else:
             groups.append((edges, factor))
     return groups
@@ -469,11 +470,14 @@ def _max_change(graph: ParticleGraph, old: Tensor, new: Tensor) -> float:
 
 
 def _resample_index(log_w: Tensor, count: int, generator) -> Tensor:
-    """``count`` indices per row drawn from ``softmax(log_w)``. Shapes: (..., K) -> (..., count)."""
-    lead = log_w.shape[:-1]
-    probs = torch.softmax(log_w.reshape(-1, log_w.shape[-1]).double(), -1)
-    idx = torch.multinomial(probs, count, replacement=True, generator=generator)
-    return idx.reshape(*lead, count)
+    """``count`` indices per row drawn from ``softmax(log_w)`` by inverting each row's CDF
+    (``searchsorted``: half the time of ``torch.multinomial`` here). Shapes: (..., K) ->
+    (..., count)."""
+    k = log_w.shape[-1]
+    cdf = torch.softmax(log_w.reshape(-1, k), -1).cumsum_(-1)
+    u = torch.rand(cdf.shape[0], count, generator=generator, dtype=cdf.dtype, device=cdf.device)
+    idx = torch.searchsorted(cdf, u.mul_(cdf[:, -1:])).clamp_(max=k - 1)
+    return idx.reshape(*log_w.shape[:-1], count)
 
 
 def _gather_particles(x: Tensor, idx: Tensor) -> Tensor:
@@ -507,11 +511,13 @@ def _propose(
         if not space.discrete:
             continuous[nodes] = True
 
+    uniform = proposal_centres is not None and proposal_centres < k
+
     def centres(log_w_rows: Tensor, x_rows: Tensor) -> tuple[Tensor, Tensor]:
         """Kernel centres of a component and their log weights: every particle weighted by
         its marginal, or (with proposal_centres = M) M particles resampled from it, 1/M each
         -- a valid proposal whose exact density costs M / K as much to evaluate."""
-        if proposal_centres is None or proposal_centres >= k:
+        if not uniform:
             return x_rows, log_w_rows
         idx = _resample_index(log_w_rows, proposal_centres, generator)
         flat = torch.full(
@@ -523,8 +529,11 @@ def _propose(
         """Centres resampled for the slots in ``mask`` (B, R, K): their (b, r, k) positions
         and values (n, D)."""
         bi, ri, ki = mask.nonzero(as_tuple=True)
-        idx = _resample_index(c_w, k, generator)
-        return bi, ri, ki, c_x[bi, ri, idx[bi, ri, ki]]
+        if uniform:  # equal weights: a uniform index for each slot that needs one
+            pick = torch.randint(c_x.shape[-2], bi.shape, generator=generator, device=c_x.device)
+        else:
+            pick = _resample_index(c_w, k, generator)[bi, ri, ki]
+        return bi, ri, ki, c_x[bi, ri, pick]
 
     # Mixture weights: component 0 is the node's own marginal (resampled and perturbed),
     # components 1.. its neighbours' marginals pushed through psi.
