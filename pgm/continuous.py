@@ -23,7 +23,13 @@ from torch import Tensor
 from pgm.factors import EdgeIndex, PairwiseFactor
 from pgm.rotations import qconj, qmul, qnormalize, qrotate
 from pgm.schedules import Constant, Schedule
-from pgm.spaces import ROTATION_KERNELS, rotation_noise, se3_kernel_mixture, se3_kernel_table
+from pgm.spaces import (
+    ROTATION_KERNELS,
+    rotation_log_kernel_from_dot,
+    rotation_noise,
+    se3_kernel_mixture,
+    se3_kernel_table,
+)
 
 __all__ = [
     "ContinuousPairwise",
@@ -57,6 +63,12 @@ class ContinuousPairwise(PairwiseFactor):
     def anneal(self) -> float:
         """Current spread multiplier ``schedule(iteration)``."""
         return self.schedule(self.iteration)
+
+    def log_potential_bound(self) -> float | None:
+        """A number no entry of :meth:`log_potential` exceeds at the current annealing step
+        (e.g. a normalised kernel's peak), or ``None``. With it, BP normalises the cached
+        tables once for both message directions."""
+        return None
 
     def sample_target(
         self, x_source: Tensor, edges: EdgeIndex, forward: bool, generator: torch.Generator | None
@@ -223,6 +235,17 @@ class RigidConnection(ContinuousPairwise):
         if self.rot_std is not None:
             qa = qmul(qa, self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
         return (ja, qa), (jb, xb[..., 3:7])
+
+    def log_potential_bound(self) -> float:
+        s_p, s_r = self._spreads()
+        bound = -3 * math.log(s_p) - 1.5 * _LOG_2PI  # the position Gaussian's peak
+        if s_r is not None:  # and the rotation kernel's (at zero angle)
+            bound += float(
+                rotation_log_kernel_from_dot(
+                    torch.ones((), dtype=torch.float64), s_r, self.rotation
+                )
+            )
+        return bound
 
     def _spreads(self) -> tuple[float, float | None]:
         s_r = None if self.rot_std is None else self.rot_std * self.anneal

@@ -158,9 +158,18 @@ class TableFactor(PairwiseFactor):
         validate: check for NaN / +inf (skip only for tables the caller has checked).
         finite: the caller knows whether the table has no ``-inf`` (saves a pass over it);
             ``None``: found out when first needed.
+        upper_bound: a number no entry exceeds (e.g. a normalised kernel's peak). Sum-product
+            messages then share one ``exp(T - bound)`` table for both directions instead of
+            normalising rows and columns separately (half the passes over the table).
     """
 
-    def __init__(self, log_table: Tensor, validate: bool = True, finite: bool | None = None):
+    def __init__(
+        self,
+        log_table: Tensor,
+        validate: bool = True,
+        finite: bool | None = None,
+        upper_bound: float | None = None,
+    ):
         if not isinstance(log_table, Tensor):
             raise TypeError(f"log_table must be a torch.Tensor, got {type(log_table).__name__}")
         if log_table.dim() not in (2, 3, 4) or log_table.shape[-1] != log_table.shape[-2]:
@@ -175,6 +184,7 @@ class TableFactor(PairwiseFactor):
         self.table = log_table  # (B or 1, E or 1, K, K)
         self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
         self._finite = finite
+        self.upper_bound = upper_bound
 
     #: below this many states the plain log-sum-exp message is as fast as the matmul one
     MATMUL_MIN_STATES = 32
@@ -190,26 +200,33 @@ class TableFactor(PairwiseFactor):
 
     def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor]:
         """``exp(T - peak)`` stored edge-major ``(E, B, K, K)`` (so that a run of edges is a
-        view that flattens to a batched matrix without a copy), and ``peak`` ``(B, E, K)``."""
+        view that flattens to a batched matrix without a copy), and ``peak`` ``(B, E, K)``:
+        per column (forward) or row (backward), or the upper bound for both."""
         cache = self.__dict__.setdefault("_exp_cache", {})
-        if forward not in cache:
-            dim = -2 if forward else -1  # forward sums over a (rows), backward over b (columns)
-            peak = self.table.amax(dim, keepdim=True)
-            peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))
+        key = None if self.upper_bound is not None else forward
+        if key not in cache:
             t = self.table.transpose(0, 1)
             scaled = torch.empty(t.shape, dtype=t.dtype, device=t.device)
-            torch.sub(t, peak.transpose(0, 1), out=scaled)  # written edge-major in one pass
+            if self.upper_bound is not None:
+                peak = torch.full_like(self.table[..., 0], self.upper_bound)
+                torch.sub(t, self.upper_bound, out=scaled)
+            else:
+                dim = -2 if forward else -1  # forward sums over a (rows), backward over b
+                peak = self.table.amax(dim, keepdim=True)
+                peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))
+                torch.sub(t, peak.transpose(0, 1), out=scaled)  # written edge-major
+                peak = peak.squeeze(dim)
             # exp() of arguments below -87 (float32 underflow) takes a scalar slow path, ~40x
-            # slower: raise them to -87, whose exp (1.6e-38) is nothing beside each column's
-            # peak entry (exactly 1); forbidden pairs (-inf) are put back to exactly 0.
+            # slower: raise them to -87 (1.6e-38); where that floor could matter the message
+            # is recomputed exactly (_matmul_message). Forbidden pairs (-inf) stay exactly 0.
             if self._finite is None:
                 self._finite = bool(self.table.amin() > -math.inf)
             forbidden = None if self._finite else torch.isneginf(t)
             scaled.clamp_(min=EXP_FLOOR).exp_()
             if forbidden is not None:
                 scaled.masked_fill_(forbidden, 0.0)
-            cache[forward] = (scaled, peak.squeeze(dim))
-        return cache[forward]
+            cache[key] = (scaled, peak)
+        return cache[key]
 
     def _matmul_message(self, h: Tensor, edges: EdgeIndex, forward: bool) -> Tensor:
         scaled, peak = self._scaled_exp(forward)
@@ -225,7 +242,13 @@ class TableFactor(PairwiseFactor):
             scaled = scaled.transpose(-1, -2)  # sum over a for each b
         s = (scaled @ w.reshape(e * b, k, 1)).reshape(e, b, k).transpose(0, 1)
         out = torch.log(s) + peak + h_peak
-        lost = s == 0  # all mass underflowed (or truly none): redo those entries exactly
+        # Redo exactly what the floor could have decided: all mass underflowed (or truly
+        # none), or -- against a shared bound, which no entry need reach -- a sum within a
+        # factor 1e6 of the floor's own largest contribution (so it is off by < 1e-6).
+        lost = s == 0
+        if self.upper_bound is not None:
+            floor = math.exp(EXP_FLOOR) * w.sum(-1).transpose(0, 1).unsqueeze(-1)
+            lost |= s <= floor * 1e6
         if lost.any():
             table = self.table if self.table.shape[1] == 1 else self.table[:, edges]
             table = table.expand(h.shape[0], h.shape[1], *table.shape[-2:])

@@ -424,7 +424,15 @@ def _cached_tables(
                 raise ValueError(
                     f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN or +inf"
                 )
-            groups.append((e, TableFactor(table, validate=False, finite=math.isfinite(total))))
+            bound = factor.log_potential_bound() if hasattr(factor, "log_potential_bound") else None
+            groups.append(
+                (
+                    e,
+                    TableFactor(
+                        table, validate=False, finite=math.isfinite(total), upper_bound=bound
+                    ),
+                )
+            )
         else:
             groups.append((edges, factor))
     return groups

@@ -136,7 +136,9 @@ def _bingham_around_identity(n: int, std, generator, dtype, device) -> Tensor:
     Acceptance is about 45 % for concentrated kernels (std <= 0.3) and rises to 1 as
     std grows; rounds of draws repeat until all are taken."""
     kappa = 2.0 / float(std) ** 2
-    b = 0.5 * (-(2 * kappa - 4) + math.sqrt((2 * kappa - 4) ** 2 + 8 * kappa))
+    lin = 2 * kappa - 4  # b is the positive root of b^2 + lin b - 2 kappa = 0
+    disc = math.sqrt(lin**2 + 8 * kappa)
+    b = 0.5 * (disc - lin) if lin < 0 else 4 * kappa / (lin + disc)  # without cancellation
     s = b / (b + 2 * kappa)
     log_m = 0.5 * (b - 4) + 2 * math.log(4 / b)
     out = torch.empty(n, 4, dtype=dtype, device=device)

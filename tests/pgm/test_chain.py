@@ -254,3 +254,24 @@ def test_table_matmul_messages_equal_log_sum_exp(dtype):
             fast, slow, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-4
         )
     assert torch.isfinite(factor.message(h, slice(None), True, LogSemiring())[1, 1, 20])
+
+
+def test_table_messages_with_an_upper_bound_equal_log_sum_exp():
+    """One exp(T - bound) table for both directions: exact wherever the floor could matter --
+    columns and rows whose entries all lie 100-400 nats below the bound, single surviving
+    entries, forbidden pairs -- against the generic log-sum-exp message, float32."""
+    torch.manual_seed(7)
+    k = 64
+    table = -torch.rand(2, 3, k, k) * 30 - 1.0  # below the bound 0
+    table[0, 1, :, 5] -= 300.0  # a column far below the bound
+    table[1, 0, 9, :] -= 150.0  # a row far below it
+    table[1, 2, :, 7] = -400.0
+    table[1, 2, 3, 7] = -80.0  # one entry just above the floor
+    table[0, 0, 2, :4] = -math.inf
+    h = torch.randn(2, 3, k) * 3
+    bounded = TableFactor(table, upper_bound=0.0)
+    plain = TableFactor(table)
+    for forward in (True, False):
+        fast = bounded.message(h, slice(None), forward, LogSemiring())
+        slow = PairwiseFactor.message(plain, h, slice(None), forward, LogSemiring())
+        torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-4)

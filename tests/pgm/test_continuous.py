@@ -105,3 +105,20 @@ def test_rigid_connection_target_mixture_equals_the_generic_one(kind, forward):
     fused = factor.log_target_mixture(xt, xs, log_w, slice(None), forward)
     generic = ContinuousPairwise.log_target_mixture(factor, xt, xs, log_w, slice(None), forward)
     torch.testing.assert_close(fused, generic)
+
+
+@pytest.mark.parametrize("kind", ["bingham", "gaussian"])
+def test_rigid_connection_bound_is_the_potential_peak(kind):
+    """No table entry exceeds log_potential_bound, and a target at its conditional's mode
+    (joints together, relative rotation exactly rel_rot) attains it."""
+    factor = _rigid(kind)
+    xa = _poses(6, 3)
+    table = factor.log_potential(slice(None), xa, _poses(50, 4), 6)
+    assert table.max() <= factor.log_potential_bound() + 1e-9
+    noiseless = _rigid(kind)
+    noiseless.pos_std = noiseless.rot_std = 1e-7  # draw (nearly) the mode
+    mode = noiseless.sample_target(xa, slice(None), True, torch.Generator().manual_seed(0))
+    at_mode = factor.log_potential(slice(None), xa, mode, 6).diagonal(dim1=-2, dim2=-1)
+    torch.testing.assert_close(
+        at_mode, torch.full_like(at_mode, factor.log_potential_bound()), atol=1e-6, rtol=0
+    )
