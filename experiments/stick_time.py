@@ -40,6 +40,10 @@ class StickTimeConfig:
     max_step: int = 12
     robust_scale: float = 2.0  # truncation at this many times the median best-match cost
     slope_weight: float = 0.5  # slope prior weight, in units of the truncation level
+    # The camera does not move: after a first robust alignment on Eq. 24, one camera pose is
+    # fitted to the matched inlier pairs and the chain methods run on the costs under it
+    # (the proposal's DTW always runs on Eq. 24's per-pair poses, as published).
+    static_camera: bool = True
     seed: int = 0
     out_dir: str = "runs/stick_time"
     tiny: bool = False
@@ -109,39 +113,77 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
             res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
             cost[i] = res.cost / height**2
     slope = (num_ref - 1) / max(num_video - 1, 1)
+
+    def robust_chain(cost_fn=None, cost=None, coarse_to_fine=False):
+        """The robust chain (truncated cost, slope prior) on a full matrix or coarse-to-fine."""
+        if coarse_to_fine:
+            return coarse_to_fine_align(
+                cost_fn,
+                num_video,
+                num_ref,
+                cfg.max_step,
+                fix_start=True,
+                fix_end=True,
+                max_cells=cfg.c2f_max_cells,
+                robust="truncate",
+                robust_scale=cfg.robust_scale,
+                step_cost=slope_step_cost(cfg.max_step, slope, cfg.slope_weight).double(),
+            ).path[0]
+        threshold = max(cfg.robust_scale * float(cost.amin(-1).median()), 1e-12)
+        truncated = robust_cost(cost, threshold=threshold)
+        prior = slope_step_cost(cfg.max_step, slope, cfg.slope_weight * threshold).double()
+        return chain_align(
+            truncated, cfg.max_step, fix_start=True, fix_end=True, step_cost=prior
+        ).path[0]
+
+    def under_one_camera(path: torch.Tensor, matched: torch.Tensor):
+        """Costs under one camera pose fitted to the matched pairs that fit well (below
+        robust_scale x their median): the reference projected once, then ``(rows, cols)``
+        costs are mean squared pixel distances like Eq. 24's, without a pose per pair."""
+        inliers = matched <= cfg.robust_scale * matched.median()
+        camera = solve_pose(ref[path[inliers]].reshape(1, -1, 3), x2[inliers].reshape(1, -1, 2), k)
+        pc = ref @ camera.R[0].T + camera.t[0]
+        uv = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
+
+        def cost_fn(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+            d = (x2[rows][:, None] - uv[cols]).square().sum(-1).mean(-1)
+            return d / height**2
+
+        return cost_fn
+
+    if full_methods and cfg.static_camera:
+        first = robust_chain(cost=cost)
+        cost_fn = under_one_camera(first, cost[torch.arange(num_video), first])
+        chain_cost = cost_fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1))
+    elif full_methods:
+        chain_cost = cost
     for method in ("c2f", "c2f_robust"):
         if method not in cfg.methods:
             continue
-        robust = {}
-        if method == "c2f_robust":  # the robust chain's cost and prior, in units of tau
-            robust = {
-                "robust": "truncate",
-                "robust_scale": cfg.robust_scale,
-                "step_cost": slope_step_cost(cfg.max_step, slope, cfg.slope_weight).double(),
-            }
-        estimates[method] = coarse_to_fine_align(
-            pair_cost,
-            num_video,
-            num_ref,
-            cfg.max_step,
-            fix_start=True,
-            fix_end=True,
-            max_cells=cfg.c2f_max_cells,
-            **robust,
-        ).path[0]
+        fn = pair_cost
+        if cfg.static_camera:
+            first = robust_chain(pair_cost, coarse_to_fine=True)
+            fn = under_one_camera(first, pair_cost(torch.arange(num_video), first[:, None])[:, 0])
+        if method == "c2f_robust":
+            estimates[method] = robust_chain(fn, coarse_to_fine=True)
+        else:
+            estimates[method] = coarse_to_fine_align(
+                fn,
+                num_video,
+                num_ref,
+                cfg.max_step,
+                fix_start=True,
+                fix_end=True,
+                max_cells=cfg.c2f_max_cells,
+            ).path[0]
     if "dtw" in cfg.methods:
         estimates["dtw"] = dtw(cost).choice
     if "chain" in cfg.methods:
-        estimates["chain"] = chain_align(cost, cfg.max_step, fix_start=True, fix_end=True).path[0]
-    if "robust" in cfg.methods:
-        threshold = cfg.robust_scale * float(cost.amin(-1).median())
-        robust = robust_cost(cost, threshold=max(threshold, 1e-12))
-        prior = slope_step_cost(
-            cfg.max_step, slope, cfg.slope_weight * float(robust.max())
-        ).double()
-        estimates["robust"] = chain_align(
-            robust, cfg.max_step, fix_start=True, fix_end=True, step_cost=prior
+        estimates["chain"] = chain_align(
+            chain_cost, cfg.max_step, fix_start=True, fix_end=True
         ).path[0]
+    if "robust" in cfg.methods:
+        estimates["robust"] = robust_chain(cost=chain_cost)
     metrics: dict[str, float] = {}
     columns = {
         "t_video": np.arange(num_video),
