@@ -21,6 +21,7 @@ import time
 import numpy as np
 import torch
 
+from experiments.runtime import retain_freed_memory
 from motion.alignment import chain_align, coarse_to_fine_align, dtw, sequence_cost_fn
 
 
@@ -39,6 +40,7 @@ def best_times(fns: dict, repeats: int) -> dict[str, float]:
 
 
 def main() -> None:
+    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-anchors", action="store_true", help="skip dtaidistance/tslearn")

@@ -17,6 +17,7 @@ import time
 
 import torch
 
+from experiments.runtime import retain_freed_memory
 from pgm.continuous import RigidConnection, UnaryFactor
 from pgm.particle_bp import ParticleGraph, particle_bp
 from pgm.rotations import qexp, qmul, qrotate
@@ -162,6 +163,7 @@ def loop_iteration(values, log_w, factor, unary, generator, kernel=(0.01, 0.05))
 
 
 def main() -> None:
+    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=80)
     parser.add_argument("--particles", type=int, default=150)

@@ -15,6 +15,7 @@ import time
 import torch
 
 from experiments.demo import BUNDLED_BVH
+from experiments.runtime import retain_freed_memory
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig
@@ -35,6 +36,7 @@ def body_segments():
 
 
 def main() -> None:
+    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hypotheses", type=int, default=1000)
     parser.add_argument(

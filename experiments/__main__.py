@@ -13,6 +13,7 @@ from pathlib import Path
 
 from experiments.config import ConfigError, ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
+from experiments.runtime import retain_freed_memory
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,6 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("config", type=Path)
     run.add_argument("overrides", nargs="*", help="key=value settings")
     args = parser.parse_args(argv)
+    retain_freed_memory()  # a process-wide allocator setting: see experiments/runtime.py
 
     if args.command == "run":
         from experiments.runner import run_config
