@@ -161,6 +161,9 @@ class TableFactor(PairwiseFactor):
         upper_bound: a number no entry exceeds (e.g. a normalised kernel's peak). Sum-product
             messages then share one ``exp(T - bound)`` table for both directions instead of
             normalising rows and columns separately (half the passes over the table).
+        workspace: a float tensor with the table's number of elements that the linear-space
+            table may be written into (a caller that rebuilds same-sized tables every
+            iteration saves allocating -- and first touching -- a new one each time).
     """
 
     def __init__(
@@ -169,6 +172,7 @@ class TableFactor(PairwiseFactor):
         validate: bool = True,
         finite: bool | None = None,
         upper_bound: float | None = None,
+        workspace: Tensor | None = None,
     ):
         if not isinstance(log_table, Tensor):
             raise TypeError(f"log_table must be a torch.Tensor, got {type(log_table).__name__}")
@@ -185,6 +189,7 @@ class TableFactor(PairwiseFactor):
         self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
         self._finite = finite
         self.upper_bound = upper_bound
+        self.workspace = workspace
 
     #: below this many states the plain log-sum-exp message is as fast as the matmul one
     MATMUL_MIN_STATES = 32
@@ -206,7 +211,17 @@ class TableFactor(PairwiseFactor):
         key = None if self.upper_bound is not None else forward
         if key not in cache:
             t = self.table.transpose(0, 1)
-            scaled = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+            ws = self.workspace
+            if (
+                key is None
+                and ws is not None
+                and ws.numel() == t.numel()
+                and ws.dtype == t.dtype
+                and ws.device == t.device
+            ):
+                scaled = ws.view(t.shape)
+            else:
+                scaled = torch.empty(t.shape, dtype=t.dtype, device=t.device)
             if self.upper_bound is not None:
                 peak = torch.full_like(self.table[..., 0], self.upper_bound)
                 torch.sub(t, self.upper_bound, out=scaled)

@@ -298,6 +298,7 @@ def particle_bp(
         raise ValueError(f"batch_chunk must be an int >= 1 or None; got {batch_chunk!r}")
     chunks = [slice(s, min(s + batch_chunk, b)) for s in range(0, b, batch_chunk)]
 
+    workspaces: dict = {}  # linear-space tables, reused by every iteration and chunk
     log_w = torch.full((b, v, k), -math.log(k), dtype=dtype, device=device)
     log_w = log_w.masked_fill(torch.isinf(log_q), -math.inf)
     mean = best = None
@@ -339,7 +340,7 @@ def particle_bp(
             for c in chunks:
                 fg = FactorGraph(
                     unary[c],
-                    _cached_tables(graph, values[c], k, orders),
+                    _cached_tables(graph, values[c], k, orders, workspaces),
                     log_measure=measure[c],
                     values=values[c],
                 )
@@ -403,11 +404,17 @@ def _scaled(scale, factor: float):
 
 
 def _cached_tables(
-    graph: ParticleGraph, values: Tensor, k: int, orders: dict[int, Tensor] | None = None
+    graph: ParticleGraph,
+    values: Tensor,
+    k: int,
+    orders: dict[int, Tensor] | None = None,
+    workspaces: dict | None = None,
 ) -> list:
     """Dense factors evaluated once per iteration: tree BP would otherwise evaluate each
     table twice (upward and downward), loopy BP once per inner iteration. ``orders[g]``:
-    a permutation of group g's edges to store them in (the marginals do not depend on it)."""
+    a permutation of group g's edges to store them in (the marginals do not depend on it).
+    ``workspaces``: reusable buffers for the tables' linear-space copies, keyed by group and
+    shape, kept by the caller across iterations."""
     groups = []
     for g, (edges, factor) in enumerate(graph.pairwise):
         if isinstance(factor, ContinuousPairwise) or isinstance(
@@ -425,11 +432,21 @@ def _cached_tables(
                     f"pairwise[{g}] {type(factor).__name__}.log_potential returned NaN or +inf"
                 )
             bound = factor.log_potential_bound() if hasattr(factor, "log_potential_bound") else None
+            ws = None
+            if workspaces is not None and bound is not None:
+                ws = workspaces.setdefault(
+                    (g, tuple(table.shape), table.dtype),
+                    torch.empty(table.numel(), dtype=table.dtype, device=table.device),
+                )
             groups.append(
                 (
                     e,
                     TableFactor(
-                        table, validate=False, finite=math.isfinite(total), upper_bound=bound
+                        table,
+                        validate=False,
+                        finite=math.isfinite(total),
+                        upper_bound=bound,
+                        workspace=ws,
                     ),
                 )
             )
