@@ -64,6 +64,14 @@ class ContinuousPairwise(PairwiseFactor):
         """Current spread multiplier ``schedule(iteration)``."""
         return self.schedule(self.iteration)
 
+    def log_potential_into(
+        self, edges: EdgeIndex, xa: Tensor, xb: Tensor, num_states: int, out: Tensor
+    ) -> Tensor:
+        """:meth:`log_potential`, written into ``out`` (a buffer the engine reuses across
+        iterations, as many elements as the table) where the factor can; the default
+        ignores ``out``."""
+        return self.log_potential(edges, xa, xb, num_states)
+
     def log_potential_bound(self) -> float | None:
         """A number no entry of :meth:`log_potential` exceeds at the current annealing step
         (e.g. a normalised kernel's peak), or ``None``. With it, BP normalises the cached
@@ -223,8 +231,11 @@ class RigidConnection(ContinuousPairwise):
         return x[..., :3] + qrotate(x[..., 3:7], offset.expand(*x.shape[:-1], 3))
 
     def log_potential(self, edges, xa, xb, num_states):
+        return self.log_potential_into(edges, xa, xb, num_states, None)
+
+    def log_potential_into(self, edges, xa, xb, num_states, out):
         (ja, qa), (jb, qb) = self._ends(edges, xa, xb)
-        return se3_kernel_table(ja, qa, jb, qb, *self._spreads(), self.rotation)  # [i, j]
+        return se3_kernel_table(ja, qa, jb, qb, *self._spreads(), self.rotation, out)  # [i, j]
 
     def _ends(self, edges, xa, xb) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
         """What the kernel compares: the joint seen from each part and the rotations

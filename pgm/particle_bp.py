@@ -425,7 +425,17 @@ def _cached_tables(
             if orders and g in orders:
                 which = orders[g]
                 e = e[which]
-            table = factor.log_potential(which, values[:, e[:, 0]], values[:, e[:, 1]], k)
+            xa, xb = values[:, e[:, 0]], values[:, e[:, 1]]
+            if workspaces is not None and isinstance(factor, ContinuousPairwise):
+                buffer = workspaces.setdefault(
+                    ("log", g, values.shape[0], len(e), values.dtype, values.device),
+                    torch.empty(
+                        values.shape[0] * len(e) * k * k, dtype=values.dtype, device=values.device
+                    ),
+                )
+                table = factor.log_potential_into(which, xa, xb, k, buffer)
+            else:
+                table = factor.log_potential(which, xa, xb, k)
             total = float(table.sum())  # one pass: NaN or +inf show in it, and -inf
             if math.isnan(total) or total == math.inf:
                 raise ValueError(
@@ -435,7 +445,7 @@ def _cached_tables(
             ws = None
             if workspaces is not None and bound is not None:
                 ws = workspaces.setdefault(
-                    (g, tuple(table.shape), table.dtype),
+                    ("linear", g, tuple(table.shape), table.dtype),
                     torch.empty(table.numel(), dtype=table.dtype, device=table.device),
                 )
             groups.append(

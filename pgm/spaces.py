@@ -252,11 +252,13 @@ def se3_kernel_table(
     pos_std,
     rot_std,
     kind: str = "bingham",
+    out: Tensor | None = None,
 ) -> Tensor:
     """``log N(p_a - p_b; 0, pos_std^2 I_3) + log k(q_a, q_b)`` for every pair, with ``k``
     the rotation kernel ``kind`` (``rot_std=None``: position only). Shapes: ``(..., K, 3)``,
     ``(..., K, 4)``, ``(..., M, 3)``, ``(..., M, 4)`` -> ``(..., K, M)``. With the Bingham
-    kernel (or none) one batched matrix product (see :func:`_se3_features`)."""
+    kernel (or none) one batched matrix product (see :func:`_se3_features`), written into
+    ``out`` (a buffer of as many elements, reused by the caller) when given."""
     if rot_std is not None and kind != "bingham":
         out = se3_kernel_table(pos_a, None, pos_b, None, pos_std, None)
         dot = quat_a @ quat_b.transpose(-1, -2)
@@ -268,10 +270,17 @@ def se3_kernel_table(
         n0, n1 = lead
         left = left.reshape(n0, n1, *left.shape[-2:]).transpose(0, 1).reshape(left.shape)
         right = right.reshape(n0, n1, *right.shape[-2:]).transpose(0, 1).reshape(right.shape)
-        out = torch.bmm(left, right.transpose(-1, -2))
-        return out.reshape(n1, n0, *out.shape[-2:]).transpose(0, 1)
-    out = torch.bmm(left, right.transpose(-1, -2))
-    return out.reshape(*lead, *out.shape[-2:])
+        table = _bmm_into(left, right.transpose(-1, -2), out)
+        return table.reshape(n1, n0, *table.shape[-2:]).transpose(0, 1)
+    table = _bmm_into(left, right.transpose(-1, -2), out)
+    return table.reshape(*lead, *table.shape[-2:])
+
+
+def _bmm_into(a: Tensor, b: Tensor, out: Tensor | None) -> Tensor:
+    shape = (a.shape[0], a.shape[1], b.shape[2])
+    if out is not None and out.numel() == math.prod(shape) and out.dtype == a.dtype:
+        return torch.bmm(a, b, out=out.view(shape))
+    return torch.bmm(a, b)
 
 
 def gaussian_position_table(a: Tensor, b: Tensor, std) -> Tensor:
