@@ -293,7 +293,8 @@ def particle_bp(
 
     if batch_chunk is None:  # ~20 MB of (E, K, K) tables per chunk (measured best here)
         per_frame = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
-        batch_chunk = max(1, (20 << 20) // per_frame)
+        largest = max(1, (20 << 20) // per_frame)
+        batch_chunk = -(-b // -(-b // largest))  # equal chunks: no small last one
     if not isinstance(batch_chunk, int) or batch_chunk < 1:
         raise ValueError(f"batch_chunk must be an int >= 1 or None; got {batch_chunk!r}")
     chunks = [slice(s, min(s + batch_chunk, b)) for s in range(0, b, batch_chunk)]
