@@ -114,21 +114,28 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
             cost[i] = res.cost / height**2
     slope = (num_ref - 1) / max(num_video - 1, 1)
 
-    def robust_chain(cost_fn=None, cost=None, coarse_to_fine=False):
-        """The robust chain (truncated cost, slope prior) on a full matrix or coarse-to-fine."""
-        if coarse_to_fine:
-            return coarse_to_fine_align(
-                cost_fn,
-                num_video,
-                num_ref,
-                cfg.max_step,
-                fix_start=True,
-                fix_end=True,
-                max_cells=cfg.c2f_max_cells,
-                robust="truncate",
-                robust_scale=cfg.robust_scale,
-                step_cost=slope_step_cost(cfg.max_step, slope, cfg.slope_weight).double(),
-            ).path[0]
+    def coarse_to_fine(cost_fn, robust: bool) -> torch.Tensor:
+        """The chain or (``robust``) the robust chain, coarse-to-fine: no full matrix."""
+        extra = {}
+        if robust:  # the robust chain's cost and prior, in units of the truncation level
+            extra = {
+                "robust": "truncate",
+                "robust_scale": cfg.robust_scale,
+                "step_cost": slope_step_cost(cfg.max_step, slope, cfg.slope_weight).double(),
+            }
+        return coarse_to_fine_align(
+            cost_fn,
+            num_video,
+            num_ref,
+            cfg.max_step,
+            fix_start=True,
+            fix_end=True,
+            max_cells=cfg.c2f_max_cells,
+            **extra,
+        ).path[0]
+
+    def robust_chain(cost: torch.Tensor) -> torch.Tensor:
+        """The robust chain (truncated cost, slope prior) on a full cost matrix."""
         threshold = max(cfg.robust_scale * float(cost.amin(-1).median()), 1e-12)
         truncated = robust_cost(cost, threshold=threshold)
         prior = slope_step_cost(cfg.max_step, slope, cfg.slope_weight * threshold).double()
@@ -152,7 +159,7 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
         return cost_fn
 
     if full_methods and cfg.static_camera:
-        first = robust_chain(cost=cost)
+        first = robust_chain(cost)
         cost_fn = under_one_camera(first, cost[torch.arange(num_video), first])
         chain_cost = cost_fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1))
     elif full_methods:
@@ -162,20 +169,9 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
             continue
         fn = pair_cost
         if cfg.static_camera:
-            first = robust_chain(pair_cost, coarse_to_fine=True)
+            first = coarse_to_fine(pair_cost, robust=True)
             fn = under_one_camera(first, pair_cost(torch.arange(num_video), first[:, None])[:, 0])
-        if method == "c2f_robust":
-            estimates[method] = robust_chain(fn, coarse_to_fine=True)
-        else:
-            estimates[method] = coarse_to_fine_align(
-                fn,
-                num_video,
-                num_ref,
-                cfg.max_step,
-                fix_start=True,
-                fix_end=True,
-                max_cells=cfg.c2f_max_cells,
-            ).path[0]
+        estimates[method] = coarse_to_fine(fn, robust=method == "c2f_robust")
     if "dtw" in cfg.methods:
         estimates["dtw"] = dtw(cost).choice
     if "chain" in cfg.methods:
@@ -183,7 +179,7 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
             chain_cost, cfg.max_step, fix_start=True, fix_end=True
         ).path[0]
     if "robust" in cfg.methods:
-        estimates["robust"] = robust_chain(cost=chain_cost)
+        estimates["robust"] = robust_chain(chain_cost)
     metrics: dict[str, float] = {}
     columns = {
         "t_video": np.arange(num_video),
