@@ -339,11 +339,14 @@ def particle_bp(
             ).to(dtype)
             marginals, change = [], None
             for c in chunks:
+                groups = _cached_tables(graph, values[c], k, orders, workspaces)
+                # Cached tables carry everything; other factors may read the particles.
+                needs_values = any(not isinstance(f, TableFactor) for _, f in groups)
                 fg = FactorGraph(
                     unary[c],
-                    _cached_tables(graph, values[c], k, orders, workspaces),
+                    groups,
                     log_measure=measure[c],
-                    values=values[c],
+                    values=values[c] if needs_values else None,
                 )
                 if is_tree:
                     result = tree_inference(fg, semiring)
