@@ -44,10 +44,20 @@ def qnormalize(q: Tensor) -> Tensor:
 
 
 def qrotate(q: Tensor, v: Tensor) -> Tensor:
-    """Rotate vectors: ``R(q) v``. Shapes: q (..., 4), v (..., 3) -> (..., 3)."""
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * torch.cross(u, v, dim=-1)
-    return v + w * t + torch.cross(u, t, dim=-1)
+    """Rotate vectors: ``R(q) v = v + w t + u x t`` with ``t = 2 u x v``, written out per
+    component (``torch.cross`` on a last axis of 3 is ~1.5x slower here). Shapes:
+    q (..., 4), v (..., 3) -> (..., 3)."""
+    w, x, y, z = q.unbind(-1)
+    vx, vy, vz = v.unbind(-1)
+    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)
+    return torch.stack(
+        [
+            vx + w * tx + (y * tz - z * ty),
+            vy + w * ty + (z * tx - x * tz),
+            vz + w * tz + (x * ty - y * tx),
+        ],
+        -1,
+    )
 
 
 def qexp(r: Tensor) -> Tensor:

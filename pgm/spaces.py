@@ -450,8 +450,9 @@ class SE3(StateSpace):
         w = torch.softmax(log_weights, -1)
         pos = (w.unsqueeze(-1) * x[..., :3]).sum(-2)
         q = x[..., 3:]
-        # Markley's average: principal eigenvector of sum_k w_k q_k q_k^T (sign-invariant).
-        m = (w[..., None, None] * q.unsqueeze(-1) * q.unsqueeze(-2)).sum(-3)
+        # Markley's average: principal eigenvector of sum_k w_k q_k q_k^T (sign-invariant),
+        # as one batched product rather than a (..., K, 4, 4) temporary.
+        m = (q * w.unsqueeze(-1)).transpose(-1, -2) @ q
         _, vecs = torch.linalg.eigh(m)
         return torch.cat([pos, qnormalize(vecs[..., -1])], -1)
 
