@@ -47,17 +47,6 @@ class PoseResult:
     iterations: int
 
 
-def _solve3(a: Tensor, b: Tensor) -> Tensor:
-    """Batched 3x3 solve by the adjugate (closed form; LAPACK's per-matrix calls dominate
-    at these sizes). Shapes: a (B, 3, 3), b (B, 3) -> (B, 3)."""
-    c0 = torch.linalg.cross(a[:, 1], a[:, 2])
-    c1 = torch.linalg.cross(a[:, 2], a[:, 0])
-    c2 = torch.linalg.cross(a[:, 0], a[:, 1])
-    det = (a[:, 0] * c0).sum(-1, keepdim=True)
-    adj_t = torch.stack([c0, c1, c2], -1)  # columns are the cofactor rows: inv = adj_t / det
-    return (adj_t @ b.unsqueeze(-1)).squeeze(-1) / det
-
-
 def _cholesky(entry, m: int) -> list[list[Tensor]]:
     """Unrolled Cholesky factorisation of small symmetric positive-definite matrices,
     vectorised over the batch: ``entry(i, j)`` gives the lower-triangle entries (``i >= j``)
@@ -138,11 +127,12 @@ def dlt_pose(points3d: Tensor, points2d: Tensor, K: Tensor) -> tuple[Tensor, Ten
     Shapes: points3d ``(B, n, 3)``, points2d ``(B, n, 2)``, K ``(3, 3)`` or ``(B, 3, 3)`` ->
     R ``(B, 3, 3)``, t ``(B, 3)``.
     """
-    return _dlt(*_check(points3d, points2d, K))
+    x3, x2, K = _check(points3d, points2d, K)
+    return _dlt(x3, _Pinhole.build(x3, x2, K))
 
 
-def _dlt(x3: Tensor, x2: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-    norm = _normalised(x2, K)
+def _dlt(x3: Tensor, problem: _Pinhole) -> tuple[Tensor, Tensor]:
+    norm = torch.stack(problem.normalised(), -1).transpose(0, 1)  # (B, n, 2)
     # centre and scale the 3-D points for conditioning; undone below
     mean = x3.mean(1, keepdim=True)
     scale = (x3 - mean).norm(dim=-1).mean(1, keepdim=True).unsqueeze(-1).clamp_min(1e-9)
@@ -161,7 +151,7 @@ def _dlt(x3: Tensor, x2: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     d = torch.ones_like(s)
     d[:, 2] = det
     r = u @ torch.diag_embed(d) @ wh
-    return r, _translation_given_rotation(r, x3, norm)
+    return r, problem.translation_for(r.permute(1, 2, 0)).T
 
 
 def affine_pose(
@@ -174,32 +164,6 @@ def affine_pose(
     pixels per metre) and ``t_z = 0``. Shapes as :func:`dlt_pose`."""
     r, t = _Pinhole.build(*_check(points3d, points2d, K), orthographic).initial_pose()
     return r.permute(2, 0, 1), t.T
-
-
-def _normalised(x2: Tensor, K: Tensor) -> Tensor:
-    """Pixels ``(B, n, 2)`` -> normalised image coordinates ``K^-1 x`` (closed form for an
-    upper-triangular ``K``, which :func:`_check` guarantees)."""
-    fx, fy, cx, cy, skew = _intrinsics(K, (-1, 1))
-    yn = (x2[..., 1] - cy) / fy
-    return torch.stack([(x2[..., 0] - cx - skew * yn) / fx, yn], -1)
-
-
-def _translation_given_rotation(r: Tensor, x3: Tensor, norm: Tensor) -> Tensor:
-    """Least-squares t for a fixed R from normalised image points: each point gives
-    ``t_x - x_n t_z = x_n (r3 . X) - r1 . X`` and the same for y -- linear in t, so the
-    DLT's ill-conditioned scale never decides the depth. The 3x3 normal equations are
-    summed in closed form."""
-    rx = x3 @ r.transpose(1, 2)  # (B, n, 3)
-    xn, yn = norm[..., 0], norm[..., 1]
-    bu = xn * rx[..., 2] - rx[..., 0]
-    bv = yn * rx[..., 2] - rx[..., 1]
-    n = torch.full_like(xn[:, 0], xn.shape[1])
-    sx, sy, zero = xn.sum(1), yn.sum(1), torch.zeros_like(n)
-    ata = torch.stack(
-        [n, zero, -sx, zero, n, -sy, -sx, -sy, (xn.square() + yn.square()).sum(1)], -1
-    ).view(-1, 3, 3)
-    atb = torch.stack([bu.sum(1), bv.sum(1), -(xn * bu + yn * bv).sum(1)], -1)
-    return _solve3(ata, atb)
 
 
 def _project(pc: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, skew: Tensor):
@@ -290,8 +254,7 @@ class _Pinhole:
         made orthonormal by the polar factor ``(A A^T)^(-1/2) A`` (closed form for the 2x2
         SPD ``A A^T``), then the exact least-squares translation for that rotation (or, for
         an orthographic camera, the image of the centroid, with ``t_z = 0``)."""
-        yn = (self.v - self.cy) / self.fy
-        xn = (self.u - self.cx - self.skew * yn) / self.fx
+        xn, yn = self.normalised()
         mean = self.X.mean(1)  # (3, B)
         xc = self.X - mean[:, None]
         xs, ys = xn - xn.mean(0), yn - yn.mean(0)
@@ -319,6 +282,20 @@ class _Pinhole:
             rm = (r * mean[None]).sum(1)  # R times the centroid, (3, B)
             t_xy = torch.stack([xn.mean(0), yn.mean(0)]) - rm[:2]
             return r, torch.cat([t_xy, torch.zeros_like(t_xy[:1])])
+        return r, self.translation_for(r)
+
+    def normalised(self) -> tuple[Tensor, Tensor]:
+        """Normalised image coordinates ``K^-1 x``: ``xn, yn`` ``(n, B)`` (closed form for the
+        upper-triangular ``K`` that :func:`_check` guarantees)."""
+        yn = (self.v - self.cy) / self.fy
+        return (self.u - self.cx - self.skew * yn) / self.fx, yn
+
+    def translation_for(self, r: Tensor) -> Tensor:
+        """Least-squares ``t (3, B)`` for fixed rotations ``r (3, 3, B)``: each point gives
+        ``t_x - x_n t_z = x_n (r3 . X) - r1 . X`` and the same for y -- linear in t, so an
+        ill-conditioned scale (the DLT's) never decides the depth. The 3x3 normal equations
+        are summed in closed form and solved by an unrolled Cholesky."""
+        xn, yn = self.normalised()
         x0, x1, x2 = self.X
         rx = [x0 * r[i, 0] + x1 * r[i, 1] + x2 * r[i, 2] for i in range(3)]
         bu, bv = xn * rx[2] - rx[0], yn * rx[2] - rx[1]
@@ -331,7 +308,7 @@ class _Pinhole:
         ]
         low = _cholesky(lambda i, j: ata[i][j], 3)
         atb = [bu.sum(0), bv.sum(0), -(xn * bu + yn * bv).sum(0)]
-        return r, torch.stack(_backward(low, _forward(low, atb)))
+        return torch.stack(_backward(low, _forward(low, atb)))
 
     def evaluate(self, r: Tensor, t: Tensor) -> tuple[Tensor, ...]:
         """At poses ``r (3, 3, B)``, ``t (3, B)``: rotated points ``R X (3, n, B)``, inverse
@@ -588,8 +565,9 @@ def solve_pose(
     doubt = best.cost > 4 * best.cost.median() + 1e-12
     if doubt.any() and not orthographic:
         idx = doubt.nonzero().flatten()
-        r_d, t_d = _dlt(x3[idx], x2[idx], K[idx])
-        cand = _refine(problem.select(idx), r_d.permute(1, 2, 0), t_d.T, iterations, TOL)
+        doubtful = problem.select(idx)
+        r_d, t_d = _dlt(x3[idx], doubtful)
+        cand = _refine(doubtful, r_d.permute(1, 2, 0), t_d.T, iterations, TOL)
         take = cand.cost < best.cost[idx]
         r_all, t_all, c_all = best.R.clone(), best.t.clone(), best.cost.clone()
         r_all[idx] = torch.where(take[:, None, None], cand.R, r_all[idx])

@@ -431,13 +431,10 @@ def _cached_tables(
                 e = e[which]
             xa, xb = values[:, e[:, 0]], values[:, e[:, 1]]
             if workspaces is not None and isinstance(factor, ContinuousPairwise):
-                buffer = workspaces.setdefault(
-                    ("log", g, values.shape[0], len(e), values.dtype, values.device),
-                    torch.empty(
-                        values.shape[0] * len(e) * k * k, dtype=values.dtype, device=values.device
-                    ),
+                size = values.shape[0] * len(e) * k * k
+                table = factor.log_potential_into(
+                    which, xa, xb, k, _buffer(workspaces, ("log", g), size, values)
                 )
-                table = factor.log_potential_into(which, xa, xb, k, buffer)
             else:
                 table = factor.log_potential(which, xa, xb, k)
             total = float(table.sum())  # one pass: NaN or +inf show in it, and -inf
@@ -448,10 +445,7 @@ def _cached_tables(
             bound = factor.log_potential_bound() if hasattr(factor, "log_potential_bound") else None
             ws = None
             if workspaces is not None and bound is not None:
-                ws = workspaces.setdefault(
-                    ("linear", g, tuple(table.shape), table.dtype),
-                    torch.empty(table.numel(), dtype=table.dtype, device=table.device),
-                )
+                ws = _buffer(workspaces, ("linear", g), table.numel(), table)
             groups.append(
                 (
                     e,
@@ -467,6 +461,15 @@ def _cached_tables(
         else:
             groups.append((edges, factor))
     return groups
+
+
+def _buffer(workspaces: dict, key: tuple, numel: int, like: Tensor) -> Tensor:
+    """A flat buffer of ``numel`` elements of ``like``'s dtype and device, allocated on the
+    first request for that key and size only."""
+    key = (*key, numel, like.dtype, like.device)
+    if key not in workspaces:
+        workspaces[key] = torch.empty(numel, dtype=like.dtype, device=like.device)
+    return workspaces[key]
 
 
 def _unary(graph: ParticleGraph, values: Tensor, estimates: Tensor) -> Tensor:
