@@ -189,18 +189,18 @@ def rotation_noise(
     return _bingham_around_identity(n, std, generator, dtype, device).reshape(*shape, 4)
 
 
-def _quadratic_features(q: Tensor) -> Tensor:
-    """``f(q)`` with ``<f(a), f(b)> = <a, b>^2``: ``(..., 4) -> (..., 10)``."""
-    r2q = math.sqrt(2.0) * q  # the cross terms appear twice in <a, b>^2
-    return torch.cat(
-        [
-            q.square(),
-            r2q[..., :1] * q[..., 1:],
-            r2q[..., 1:2] * q[..., 2:],
-            r2q[..., 2:3] * q[..., 3:],
-        ],
-        -1,
-    )
+def _quadratic_features_into(q: Tensor, scale: float, out: Tensor) -> None:
+    """``out (..., 10, K) = scale * f(q)`` with ``<f(a), f(b)> = <a, b>^2``: the squares
+    ``q_i^2`` then ``sqrt(2) q_i q_j`` for ``i < j`` (the cross terms appear twice in
+    ``<a, b>^2``). ``q (..., 4, K)`` component-major: every product is a contiguous row."""
+    q = q.contiguous()
+    if scale != 1.0:
+        q = q * math.sqrt(scale)
+    torch.mul(q, q, out=out[..., :4, :])
+    r2q = q[..., :3, :] * math.sqrt(2.0)
+    torch.mul(r2q[..., 0:1, :], q[..., 1:, :], out=out[..., 4:7, :])
+    torch.mul(r2q[..., 1:2, :], q[..., 2:, :], out=out[..., 7:9, :])
+    torch.mul(r2q[..., 2:3, :], q[..., 3:, :], out=out[..., 9:10, :])
 
 
 def _se3_features(
@@ -212,36 +212,52 @@ def _se3_features(
     rot_std,
     log_weights_b: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, tuple[int, ...]]:
-    """Features ``L (N, K, F)``, ``R (N, M, F)`` (leading dims flattened to ``N``) with
-    ``L R^T = log N(p_a - p_b; 0, s_p^2 I_3) + log k(q_a, q_b) + log_w_b`` for the Bingham
+    """Features ``L (N, F, K)``, ``R (N, F, M)`` (leading dims flattened to ``N``) with
+    ``L^T R = log N(p_a - p_b; 0, s_p^2 I_3) + log k(q_a, q_b) + log_w_b`` for the Bingham
     rotation kernel ``k`` (``rot_std=None``: position only).
 
     ``-|a - b|^2 / 2 s^2 = a.b / s^2 - |a|^2 / 2 s^2 - |b|^2 / 2 s^2`` and
-    ``kappa <q_a, q_b>^2`` is linear in :func:`_quadratic_features`, so the whole table is
-    one batched matrix product with 15 features: a single write of ``(..., K, M)``. Positions
+    ``kappa <q_a, q_b>^2`` is linear in the 10 products ``q_i q_j`` (``i <= j``), so the
+    whole table is one batched matrix product with F = 15 features: a single write of
+    ``(..., K, M)``. The features are built component-major (each a contiguous row of K),
+    where concatenating narrow last-axis pieces would cost more than the product. Positions
     are centred on a common point first, so float32 keeps small differences of large ones."""
-    std = torch.as_tensor(pos_std, dtype=pos_a.dtype, device=pos_a.device)
+    lead = torch.broadcast_shapes(pos_a.shape[:-2], pos_b.shape[:-2])
+    if quat_a is not None:
+        lead = torch.broadcast_shapes(lead, quat_a.shape[:-2], quat_b.shape[:-2])
+    std = float(pos_std)
+    inv = 1.0 / std**2
+    const = 3.0 * math.log(std) + 1.5 * _LOG_2PI
+    nf = 5 if rot_std is None else 15
     origin = pos_b.mean(-2, keepdim=True)
-    a, b = pos_a - origin, pos_b - origin
-    inv = 1.0 / std.square()
-    const = 3.0 * torch.log(std) + 1.5 * _LOG_2PI
-    left, right = [a * inv], [b]
+
+    def side(pos: Tensor, quat: Tensor | None, scale_pos: float, scale_rot: float) -> Tensor:
+        """(N, F, n): scaled position, quadratic rotation features, then two free rows."""
+        n = pos.shape[-2]
+        out = pos.new_empty(*lead, nf, n)
+        p = out[..., :3, :]
+        torch.sub(pos.transpose(-1, -2), origin.transpose(-1, -2), out=p)
+        if nf == 15:
+            q = quat.transpose(-1, -2).expand(*lead, 4, n)
+            _quadratic_features_into(q, scale_rot, out[..., 3:13, :])
+        sq = p.square().sum(-2)
+        p.mul_(scale_pos)
+        return out, sq
+
+    kappa = None
     if rot_std is not None:
-        kappa = 2.0 / torch.as_tensor(rot_std, dtype=torch.float64).square()
-        const = const + (kappa + bingham_log_normaliser(rot_std)).to(a.dtype)
-        left.append(_quadratic_features(quat_a) * kappa.to(a.dtype))
-        right.append(_quadratic_features(quat_b))
-    sq_a = a.square().sum(-1, keepdim=True) * (-0.5 * inv) - const
-    sq_b = b.square().sum(-1, keepdim=True) * (-0.5 * inv)
+        kappa = 2.0 / float(rot_std) ** 2
+        const += kappa + float(bingham_log_normaliser(rot_std))
+    left, sq_a = side(pos_a, quat_a, inv, kappa)
+    right, sq_b = side(pos_b, quat_b, 1.0, 1.0)
+    torch.add(sq_a.mul_(-0.5 * inv), -const, out=left[..., -2, :])
+    left[..., -1, :] = 1.0
+    right[..., -2, :] = 1.0
+    sq_b.mul_(-0.5 * inv)
     if log_weights_b is not None:
-        sq_b = sq_b + log_weights_b.unsqueeze(-1)
-    left += [sq_a, torch.ones_like(sq_a)]
-    right += [torch.ones_like(sq_b), sq_b]
-    left, right = torch.cat(left, -1), torch.cat(right, -1)
-    lead = torch.broadcast_shapes(left.shape[:-2], right.shape[:-2])
-    left = left.expand(*lead, *left.shape[-2:]).reshape(-1, *left.shape[-2:])
-    right = right.expand(*lead, *right.shape[-2:]).reshape(-1, *right.shape[-2:])
-    return left, right, lead
+        sq_b.add_(log_weights_b)
+    right[..., -1, :] = sq_b
+    return left.reshape(-1, nf, left.shape[-1]), right.reshape(-1, nf, right.shape[-1]), lead
 
 
 def se3_kernel_table(
@@ -270,9 +286,9 @@ def se3_kernel_table(
         n0, n1 = lead
         left = left.reshape(n0, n1, *left.shape[-2:]).transpose(0, 1).reshape(left.shape)
         right = right.reshape(n0, n1, *right.shape[-2:]).transpose(0, 1).reshape(right.shape)
-        table = _bmm_into(left, right.transpose(-1, -2), out)
+        table = _bmm_into(left.transpose(-1, -2), right, out)
         return table.reshape(n1, n0, *table.shape[-2:]).transpose(0, 1)
-    table = _bmm_into(left, right.transpose(-1, -2), out)
+    table = _bmm_into(left.transpose(-1, -2), right, out)
     return table.reshape(*lead, *table.shape[-2:])
 
 
@@ -319,7 +335,7 @@ def se3_kernel_mixture(
     left, right, lead = _se3_features(
         pos_a, quat_a, pos_b, quat_b, pos_std, rot_std, log_weights_b - w_peak
     )
-    s = torch.bmm(left, right.transpose(-1, -2)).clamp_(min=-87.0).exp_().sum(-1)  # (N, K)
+    s = torch.bmm(left.transpose(-1, -2), right).clamp_(min=-87.0).exp_().sum(-1)  # (N, K)
     out = torch.log(s)
     w_peak = w_peak.expand(*lead, 1).reshape(-1, 1)
     return (out + w_peak).reshape(*lead, out.shape[-1])
