@@ -221,8 +221,8 @@ def particle_bp(
             from (default: uniform, i.e. the initial particles are taken as a grid).
         loopy_iterations, loopy_damping: inner loopy-BP settings when the graph has cycles.
         batch_chunk: frames processed together in the proposal and BP steps (default: as
-            many as keep ~20 MB of pairwise tables in BP and ~64 MB of mixture densities in
-            the proposal; results do not depend on it except through the order of random
+            many as keep ~20 MB of pairwise tables in BP, and up to 2^20 particles in the
+            proposal; results do not depend on it except through the order of random
             draws).
         callback: called with each iteration's :class:`IterationStats`.
 
@@ -295,14 +295,12 @@ def particle_bp(
     if batch_chunk is not None and (not isinstance(batch_chunk, int) or batch_chunk < 1):
         raise ValueError(f"batch_chunk must be an int >= 1 or None; got {batch_chunk!r}")
     # Defaults measured on a 2-core CPU: BP keeps ~20 MB of (E, K, K) tables per chunk (its
-    # passes over them then stay in cache); the proposal is many small ops per chunk, so it
-    # runs on larger ones, bounded by ~64 MB of (K, M) mixture densities.
-    itemsize = initial.element_size()
-    table_bytes = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * itemsize
-    centres = k if proposal_centres is None else min(k, proposal_centres)
-    mixture_bytes = (v + sum(len(de.source) for de in directed)) * k * centres * itemsize
+    # passes over them then stay in cache); the proposal is many small ops per chunk (its
+    # mixture densities are evaluated in cache-sized blocks), so it takes up to 2^20
+    # particles at once.
+    table_bytes = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
     chunks = _chunks(b, batch_chunk or (20 << 20) // table_bytes)
-    proposal_chunks = _chunks(b, batch_chunk or (64 << 20) // mixture_bytes)
+    proposal_chunks = _chunks(b, batch_chunk or (1 << 20) // (v * k))
 
     workspaces: dict = {}  # linear-space tables, reused by every iteration and chunk
     log_w = torch.full((b, v, k), -math.log(k), dtype=dtype, device=device)
