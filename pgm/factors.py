@@ -203,10 +203,11 @@ class TableFactor(PairwiseFactor):
             return self._matmul_message(h, edges, forward)
         return super().message(h, edges, forward, semiring, xa, xb)
 
-    def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor]:
+    def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor, float]:
         """``exp(T - peak)`` stored edge-major ``(E, B, K, K)`` (so that a run of edges is a
-        view that flattens to a batched matrix without a copy), and ``peak`` ``(B, E, K)``:
-        per column (forward) or row (backward), or the upper bound for both."""
+        view that flattens to a batched matrix without a copy), ``peak`` ``(B, E, K)``: per
+        column (forward) or row (backward), or one shift for both under an upper bound; and
+        the value the smallest entries were raised to."""
         cache = self.__dict__.setdefault("_exp_cache", {})
         key = None if self.upper_bound is not None else forward
         if key not in cache:
@@ -222,29 +223,39 @@ class TableFactor(PairwiseFactor):
                 scaled = ws.view(t.shape)
             else:
                 scaled = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+            # exp() of arguments below -87 (float32 underflow) takes a scalar slow path, ~40x
+            # slower: raise them to -87 (1.6e-38) after the shift; where that floor could
+            # matter the message is recomputed exactly (_matmul_message). Forbidden pairs
+            # (-inf) stay exactly 0.
+            if self._finite is None:
+                self._finite = bool(self.table.amin() > -math.inf)
+            forbidden = None if self._finite else torch.isneginf(t)
             if self.upper_bound is not None:
-                peak = torch.full_like(self.table[..., 0], self.upper_bound)
-                torch.sub(t, self.upper_bound, out=scaled)
+                bound = float(self.upper_bound)
+                # A bound in [0, 80] needs no shift: exp(T) cannot overflow and the floor
+                # bound - 87 keeps exp on its fast path (one pass fewer over the table).
+                shift = 0.0 if 0.0 <= bound <= 80.0 else bound
+                peak = torch.full_like(self.table[..., 0], shift)
+                torch.clamp(t, min=bound + EXP_FLOOR, out=scaled)
+                if shift:
+                    scaled.sub_(shift)
+                floor = math.exp(bound + EXP_FLOOR - shift)
             else:
                 dim = -2 if forward else -1  # forward sums over a (rows), backward over b
                 peak = self.table.amax(dim, keepdim=True)
                 peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))
                 torch.sub(t, peak.transpose(0, 1), out=scaled)  # written edge-major
+                scaled.clamp_(min=EXP_FLOOR)
                 peak = peak.squeeze(dim)
-            # exp() of arguments below -87 (float32 underflow) takes a scalar slow path, ~40x
-            # slower: raise them to -87 (1.6e-38); where that floor could matter the message
-            # is recomputed exactly (_matmul_message). Forbidden pairs (-inf) stay exactly 0.
-            if self._finite is None:
-                self._finite = bool(self.table.amin() > -math.inf)
-            forbidden = None if self._finite else torch.isneginf(t)
-            scaled.clamp_(min=EXP_FLOOR).exp_()
+                floor = math.exp(EXP_FLOOR)
+            scaled.exp_()
             if forbidden is not None:
                 scaled.masked_fill_(forbidden, 0.0)
-            cache[key] = (scaled, peak)
+            cache[key] = (scaled, peak, floor)
         return cache[key]
 
     def _matmul_message(self, h: Tensor, edges: EdgeIndex, forward: bool) -> Tensor:
-        scaled, peak = self._scaled_exp(forward)
+        scaled, peak, floor = self._scaled_exp(forward)
         edges = _as_slice(edges)
         if self.table.shape[1] > 1:
             scaled, peak = scaled[edges], peak[:, edges]
@@ -265,8 +276,7 @@ class TableFactor(PairwiseFactor):
         # factor 1e6 of the floor's own largest contribution (so it is off by < 1e-6).
         lost = s == 0
         if self.upper_bound is not None:
-            floor = math.exp(EXP_FLOOR) * w.sum(-1).transpose(0, 1).unsqueeze(-1)
-            lost |= s <= floor * 1e6
+            lost |= s <= (floor * 1e6) * w.sum(-1).transpose(0, 1).unsqueeze(-1)
         if lost.any():
             table = self.table if self.table.shape[1] == 1 else self.table[:, edges]
             table = table.expand(h.shape[0], h.shape[1], *table.shape[-2:])

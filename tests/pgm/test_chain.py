@@ -256,10 +256,12 @@ def test_table_matmul_messages_equal_log_sum_exp(dtype):
     assert torch.isfinite(factor.message(h, slice(None), True, LogSemiring())[1, 1, 20])
 
 
-def test_table_messages_with_an_upper_bound_equal_log_sum_exp():
+@pytest.mark.parametrize("bound", [0.0, 40.0, -20.0, 120.0])
+def test_table_messages_with_an_upper_bound_equal_log_sum_exp(bound):
     """One exp(T - bound) table for both directions: exact wherever the floor could matter --
     columns and rows whose entries all lie 100-400 nats below the bound, single surviving
-    entries, forbidden pairs -- against the generic log-sum-exp message, float32."""
+    entries, forbidden pairs -- against the generic log-sum-exp message, float32. Bounds in
+    [0, 80] take exp(T) unshifted; the others shift first."""
     torch.manual_seed(7)
     k = 64
     table = -torch.rand(2, 3, k, k) * 30 - 1.0  # below the bound 0
@@ -269,7 +271,8 @@ def test_table_messages_with_an_upper_bound_equal_log_sum_exp():
     table[1, 2, 3, 7] = -80.0  # one entry just above the floor
     table[0, 0, 2, :4] = -math.inf
     h = torch.randn(2, 3, k) * 3
-    bounded = TableFactor(table, upper_bound=0.0)
+    table = table + bound
+    bounded = TableFactor(table, upper_bound=bound)
     plain = TableFactor(table)
     for forward in (True, False):
         fast = bounded.message(h, slice(None), forward, LogSemiring())
