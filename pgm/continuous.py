@@ -227,7 +227,19 @@ class RigidConnection(ContinuousPairwise):
         t = t.to(like)
         return t[edges][None, :, None, :] if t.dim() == 2 else t
 
-    def _joint(self, x: Tensor, offset: Tensor) -> Tensor:
+    # The common conventions -- a part's frame at its joint, no mean relative rotation --
+    # make the joint the position itself and R_a r = R_a: those products are skipped.
+    def _at_origin(self, end: str) -> bool:
+        return bool((getattr(self, f"offset_{end}") == 0).all())
+
+    def _rel_identity(self) -> bool:
+        return bool((self.rel_rot == self.rel_rot.new_tensor([1.0, 0, 0, 0])).all())
+
+    def _joint(self, x: Tensor, end: str, edges: EdgeIndex) -> Tensor:
+        """The joint seen from end ``"a"`` or ``"b"``: ``p + R o``. Shapes: (..., 7) -> (..., 3)."""
+        if self._at_origin(end):
+            return x[..., :3]
+        offset = self._param(getattr(self, f"offset_{end}"), edges, x)
         return x[..., :3] + qrotate(x[..., 3:7], offset.expand(*x.shape[:-1], 3))
 
     def log_potential(self, edges, xa, xb, num_states):
@@ -240,10 +252,9 @@ class RigidConnection(ContinuousPairwise):
     def _ends(self, edges, xa, xb) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
         """What the kernel compares: the joint seen from each part and the rotations
         ``R_a r`` and ``R_b``. Shapes: (B, E, K, 3) and (B, E, K, 4) per end."""
-        ja = self._joint(xa, self._param(self.offset_a, edges, xa))
-        jb = self._joint(xb, self._param(self.offset_b, edges, xb))
+        ja, jb = self._joint(xa, "a", edges), self._joint(xb, "b", edges)
         qa = xa[..., 3:7]
-        if self.rot_std is not None:
+        if self.rot_std is not None and not self._rel_identity():
             qa = qmul(qa, self._param(self.rel_rot, edges, xa).expand(*xa.shape[:-1], 4))
         return (ja, qa), (jb, xb[..., 3:7])
 
@@ -280,15 +291,16 @@ class RigidConnection(ContinuousPairwise):
             (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
         )
         q_s = x_source[..., 3:7]
-        if forward:  # b given a: R_b = exp(e) R_a r;  p_b = joint_a - R_b o_b + noise
-            q_t = qnormalize(qmul(noise, qmul(q_s, rel)))
-            joint = self._joint(x_source, self._param(self.offset_a, edges, x_source))
-            o_t = self._param(self.offset_b, edges, x_source)
-        else:  # a given b: R_a = exp(e) R_b r^-1
-            q_t = qnormalize(qmul(noise, qmul(q_s, qconj(rel))))
-            joint = self._joint(x_source, self._param(self.offset_b, edges, x_source))
-            o_t = self._param(self.offset_a, edges, x_source)
-        p_t = joint - qrotate(q_t, o_t.expand(*lead, 3)) + s_p * ep
+        if not self._rel_identity():
+            q_s = qmul(q_s, rel if forward else qconj(rel))
+        # forward, b given a: R_b = exp(e) R_a r, p_b = joint_a - R_b o_b + noise;
+        # backward, a given b: R_a = exp(e) R_b r^-1, p_a = joint_b - R_a o_a + noise.
+        q_t = qnormalize(qmul(noise, q_s))
+        source, target = ("a", "b") if forward else ("b", "a")
+        p_t = self._joint(x_source, source, edges) + s_p * ep
+        if not self._at_origin(target):
+            offset = self._param(getattr(self, f"offset_{target}"), edges, x_source)
+            p_t = p_t - qrotate(q_t, offset.expand(*lead, 3))
         return torch.cat([p_t, q_t], -1)
 
     def log_target_density(self, x_target, x_source, edges, forward):

@@ -122,3 +122,23 @@ def test_rigid_connection_bound_is_the_potential_peak(kind):
     torch.testing.assert_close(
         at_mode, torch.full_like(at_mode, factor.log_potential_bound()), atol=1e-6, rtol=0
     )
+
+
+@pytest.mark.parametrize("forward", [True, False])
+def test_rigid_connection_shortcuts_equal_the_general_formulas(forward):
+    """Zero joint offsets and an identity relative rotation skip their products; the
+    tables, mixtures and draws equal those of the general formulas (same random stream)."""
+    fast = RigidConnection(torch.zeros(2, 3), torch.zeros(3), pos_std=0.03, rot_std=0.2)
+    general = RigidConnection(torch.zeros(2, 3), torch.zeros(3), pos_std=0.03, rot_std=0.2)
+    general._at_origin = lambda end: False
+    general._rel_identity = lambda: False
+    xa, xb = _poses(30, 5).float(), _poses(20, 6).float()
+    log_w = torch.log_softmax(torch.randn(1, 2, 30, generator=torch.Generator().manual_seed(1)), -1)
+    for f in (fast, general):
+        f.table = f.log_potential(slice(None), xa, xb, 30)
+        f.mixture = f.log_target_mixture(xb, xa, log_w, slice(None), forward)
+        g = torch.Generator().manual_seed(0)
+        f.draws = f.sample_target(xa, slice(None), forward, g)
+    torch.testing.assert_close(fast.table, general.table)
+    torch.testing.assert_close(fast.mixture, general.mixture)
+    torch.testing.assert_close(fast.draws, general.draws)
