@@ -18,6 +18,7 @@ Shapes: ``(..., D)`` values with any leading batch shape; kernels between ``K`` 
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -125,37 +126,68 @@ def rotation_log_kernel_from_dot(dot: Tensor, std, kind: str = "bingham") -> Ten
     return so3_log_kernel_from_dot(dot, std)
 
 
+@functools.lru_cache(maxsize=256)
+def _bingham_envelope(kappa: float) -> tuple[float, float, float, float, float]:
+    """``(t0, head_scale, t_star, p_head, acceptance)`` of :func:`_bingham_around_identity`'s
+    envelope for concentration ``kappa``: the split point ``t0`` minimising the envelope's
+    mass (a grid search, log-spaced as the best ``t0`` shrinks like ``log(kappa) / kappa``,
+    float64; at ``t0 = 0`` there is no head), the head's ``B`` (0 without one), the point
+    ``t*`` where ``t^(1/2) exp(-kappa t)`` peaks on [t0, 1], the head's share of the mass and
+    the acceptance rate ``mass(f) / mass(g)``, ``mass(f) = (pi/2) (i0e(kappa/2) - i1e(kappa/2))``."""
+    t0 = torch.cat([torch.zeros(1), torch.logspace(-9, math.log10(0.995), 4000)]).double()
+    scale = torch.where(t0 > 0, (1.0 - t0).rsqrt(), 0.0)
+    head = scale * (0.5 * math.sqrt(math.pi) * kappa**-1.5)
+    t_star = torch.clamp(torch.full_like(t0, 0.5 / kappa), max=1.0).maximum(t0)
+    tail = 2.0 * t_star.sqrt() * torch.exp(-kappa * t_star) * (1.0 - t0).sqrt()
+    i = int(torch.argmin(head + tail))
+    half = torch.tensor(0.5 * kappa, dtype=torch.float64)
+    mass_f = 0.5 * math.pi * float(torch.special.i0e(half) - torch.special.i1e(half))
+    total = float(head[i] + tail[i])
+    return float(t0[i]), float(scale[i]), float(t_star[i]), float(head[i]) / total, mass_f / total
+
+
 def _bingham_around_identity(n: int, std, generator, dtype, device) -> Tensor:
     """``n`` draws of the isotropic Bingham density ``exp(-kappa (1 - w^2))`` on unit
-    quaternions ``(w, x, y, z)``, by rejection from an angular central Gaussian envelope
-    (Kent, Ganeiber & Mardia 2018, "A new unified approach for the simulation of a wide
-    class of directional distributions", J. Comput. Graph. Stat. 27(2)): with ``b`` the root
-    of ``1/b + 3/(b + 2 kappa) = 1``, propose ``z / |z|``, ``z ~ N(0, diag(1, s, s, s))``,
-    ``s = b / (b + 2 kappa)``, and accept with probability
-    ``exp(-kappa (1 - w^2)) (y^T Omega y)^2 / M``, ``M = exp((b - 4) / 2) (4 / b)^2``.
-    Acceptance is about 45 % for concentrated kernels (std <= 0.3) and rises to 1 as
-    std grows; rounds of draws repeat until all are taken."""
+    quaternions ``(w, x, y, z)``, ``kappa = 2 / std^2``, exactly, by rejection.
+
+    With ``q = (sqrt(1 - t), sqrt(t) u)``, ``u`` uniform on S^2 (the density is isotropic),
+    ``t = sin^2(a / 2)`` has density ``f(t) ~ t^(1/2) (1 - t)^(-1/2) exp(-kappa t)`` on
+    [0, 1). For any ``t0`` in [0, 1) the envelope
+    ``g(t) = B t^(1/2) exp(-kappa t) + 1[t >= t0] M (1 - t)^(-1/2)`` with
+    ``B = (1 - t0)^(-1/2)`` and ``M = max_{[t0, 1]} t^(1/2) exp(-kappa t)`` dominates ``f``
+    (the first term on [0, t0], the second on [t0, 1)), and both terms are sampled in closed
+    form: a Gamma(3/2, kappa), i.e. ``|z|^2 / (2 kappa)`` for ``z ~ N(0, I_3)`` -- whose
+    direction ``z / |z|`` is the independent ``u`` -- and ``1 - t = (1 - t0) v^2`` with ``v``
+    uniform. A draw is kept with probability
+    ``f / g = 1 / (B (1 - t)^(1/2) + 1[t >= t0] M exp(kappa t) t^(-1/2))``. ``t0`` minimises
+    the envelope's mass (:func:`_bingham_envelope`; ``t0 = 0`` drops the head, best for
+    wide kernels): acceptance ~0.99 at std = 0.05, ~0.8 at std = 0.3, above 0.54 at every
+    concentration; 3 normals and 2 uniforms a draw (an angular central Gaussian envelope
+    needs 4 and 1, at ~45 % acceptance for concentrated kernels)."""
     kappa = 2.0 / float(std) ** 2
-    lin = 2 * kappa - 4  # b is the positive root of b^2 + lin b - 2 kappa = 0
-    disc = math.sqrt(lin**2 + 8 * kappa)
-    b = 0.5 * (disc - lin) if lin < 0 else 4 * kappa / (lin + disc)  # without cancellation
-    s = b / (b + 2 * kappa)
-    log_m = 0.5 * (b - 4) + 2 * math.log(4 / b)
+    t0, scale, t_star, p_head, acceptance = _bingham_envelope(kappa)
     out = torch.empty(n, 4, dtype=dtype, device=device)
-    missing = torch.arange(n, device=device)
-    while len(missing):
-        m = len(missing)
-        draw = int(m / 0.44) + 32  # one round, mostly
-        z = torch.randn(draw, 4, generator=generator, dtype=dtype, device=device)
-        z[:, 1:] *= math.sqrt(s)
-        y = z / z.norm(dim=-1, keepdim=True)
-        off = y[:, 1:].square().sum(-1)  # sin^2 of the half angle, without cancellation
-        omega = 1.0 + (1.0 / s - 1.0) * off  # y^T Omega y
-        log_accept = -kappa * off + 2.0 * torch.log(omega) - log_m
-        u = torch.rand(draw, generator=generator, dtype=dtype, device=device)
-        taken = y[torch.log(u) < log_accept][:m]
-        out[missing[: len(taken)]] = taken
-        missing = missing[len(taken) :]
+    done = 0
+    while done < n:
+        m = n - done
+        draw = int(m / acceptance * 1.02) + 32  # one round, mostly
+        z = torch.randn(3, draw, generator=generator, dtype=dtype, device=device)
+        u = torch.rand(2, draw, generator=generator, dtype=dtype, device=device)
+        r2 = z.square().sum(0)
+        head = u[0] < p_head
+        v = (u[0] - p_head) / (1.0 - p_head) if p_head < 1.0 else u[0]
+        t = torch.where(head, r2 * (0.5 / kappa), 1.0 - (1.0 - t0) * v.square())
+        bound = scale * (1.0 - t).clamp_min(0.0).sqrt()
+        # M exp(kappa t) = sqrt(t*) exp(kappa (t - t*)); capped at e^80 against overflow
+        # (such a draw is kept with probability below e^-80 either way).
+        tail = math.sqrt(t_star) * torch.exp((kappa * (t - t_star)).clamp_max(80.0)) * t.rsqrt()
+        bound = bound + torch.where(t >= t0, tail, 0.0)
+        keep = ((u[1] * bound < 1.0) & (t < 1.0)).nonzero().squeeze(-1)[:m]
+        t, z, r2 = t[keep], z[:, keep], r2[keep]
+        block = out[done : done + len(keep)]
+        block[:, 0] = (1.0 - t).sqrt()
+        block[:, 1:] = (z * (t / r2).sqrt()).T
+        done += len(keep)
     return out
 
 

@@ -11,8 +11,10 @@ from pgm.spaces import (
     SE3,
     Discrete,
     Euclidean,
+    _bingham_envelope,
     gaussian_position_table,
     rotation_log_kernel_from_dot,
+    rotation_noise,
     so3_log_kernel,
 )
 
@@ -214,3 +216,24 @@ def test_se3_kernel_mixture_equals_log_sum_exp_of_the_table(kind):
         assert (exact[:, :3] < fused[:, :3]).all() and (fused[:, :3] < peak - 60).all()
     else:
         torch.testing.assert_close(fused[:, :3], exact[:, :3], atol=2e-3, rtol=1e-4)
+
+
+@pytest.mark.parametrize("std", [0.05, 0.3, 0.7, 1.0, 3.0])
+def test_bingham_draws_follow_the_density_at_every_concentration(std):
+    """The exact sampler's two envelope branches (Gamma head, (1 - t)^(-1/2) tail) are both
+    used at wide kernels: the half angle h of 200k draws has the CDF of the density
+    ``2 sin^2 h exp(-kappa sin^2 h)`` on [0, pi/2] (Kolmogorov-Smirnov distance below 0.0045;
+    the 1 % critical value is 0.0036); acceptance stays above 0.54."""
+    g = torch.Generator().manual_seed(11)
+    q = rotation_noise((200_000,), std, "bingham", g, F64)
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(200_000, dtype=F64))
+    h = torch.asin(q[:, 1:].norm(dim=-1).clamp(max=1.0)).sort().values
+    kappa = 2.0 / std**2
+    grid = torch.linspace(0, math.pi / 2, 200_001, dtype=F64)
+    dens = 2 * torch.sin(grid).square() * torch.exp(-kappa * torch.sin(grid).square())
+    cdf = torch.cat([dens.new_zeros(1), torch.cumulative_trapezoid(dens, grid)])
+    model = torch.from_numpy(np.interp(h.numpy(), grid.numpy(), (cdf / cdf[-1]).numpy()))
+    empirical = torch.arange(1, len(h) + 1, dtype=F64) / len(h)
+    assert (model - empirical).abs().max().item() < 0.0045
+    for k in (0.01, 0.5, 2.0, 2.7, 4.0, 8.0, 22.2, 100.0, 800.0, 1e5):
+        assert _bingham_envelope(k)[4] > 0.54
