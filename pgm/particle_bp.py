@@ -221,7 +221,7 @@ def particle_bp(
             from (default: uniform, i.e. the initial particles are taken as a grid).
         loopy_iterations, loopy_damping: inner loopy-BP settings when the graph has cycles.
         batch_chunk: frames processed together in the proposal and BP steps (default: as
-            many as keep ~20 MB of pairwise tables in BP, and up to 2^20 particles in the
+            many as keep ~48 MB of pairwise tables in BP, and up to 2^20 particles in the
             proposal; results do not depend on it except through the order of random
             draws).
         callback: called with each iteration's :class:`IterationStats`.
@@ -294,12 +294,12 @@ def particle_bp(
 
     if batch_chunk is not None and (not isinstance(batch_chunk, int) or batch_chunk < 1):
         raise ValueError(f"batch_chunk must be an int >= 1 or None; got {batch_chunk!r}")
-    # Defaults measured on a 2-core CPU: BP keeps ~20 MB of (E, K, K) tables per chunk (its
-    # passes over them then stay in cache); the proposal is many small ops per chunk (its
-    # mixture densities are evaluated in cache-sized blocks), so it takes up to 2^20
-    # particles at once.
+    # Defaults measured on a 2-core CPU: BP takes ~48 MB of (E, K, K) tables per chunk (1 to
+    # 3 chunks measured alike, 5 slower: per-op overhead against cache reuse); the proposal
+    # is many small ops (its mixture densities are evaluated in cache-sized blocks), so it
+    # takes up to 2^20 particles at once.
     table_bytes = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
-    chunks = _chunks(b, batch_chunk or (20 << 20) // table_bytes)
+    chunks = _chunks(b, batch_chunk or (48 << 20) // table_bytes)
     proposal_chunks = _chunks(b, batch_chunk or (1 << 20) // (v * k))
 
     workspaces: dict = {}  # linear-space tables, reused by every iteration and chunk
