@@ -56,7 +56,7 @@ class PoseUnary(UnaryFactor):
         return -0.5 * d2 / self.std**2
 
 
-def make_problem(frames: int, k: int, seed: int = 0):
+def make_problem(frames: int, k: int, seed: int = 0, device: str = "cpu"):
     g = torch.Generator().manual_seed(seed)
     v = 15
     offsets = torch.randn(len(EDGES), 3, generator=g) * 0.1
@@ -75,6 +75,9 @@ def make_problem(frames: int, k: int, seed: int = 0):
         [(torch.arange(v), PoseUnary(truth, 0.05))],
     )
     initial = SE3().perturb(truth.unsqueeze(2).expand(frames, v, k, 7), (0.05, 0.2), g)
+    if device != "cpu":  # the same problem (drawn on the CPU), solved on another device
+        graph.unary[0][1].truth = truth = truth.to(device)
+        initial = initial.to(device)
     return graph, initial, factor, truth
 
 
@@ -173,21 +176,28 @@ def main() -> None:
         "--loop-frames",
         type=int,
         default=4,
-        help="frames run through the loop version (its time is scaled to --frames)",
+        help="frames run through the loop version (its time is scaled to --frames); 0: skip it",
     )
+    parser.add_argument("--device", default="cpu", help="where pgm.particle_bp runs (cpu, cuda)")
     args = parser.parse_args()
     torch.manual_seed(0)
-    graph, initial, factor, truth = make_problem(args.frames, args.particles)
-    g = torch.Generator().manual_seed(1)
-    warm, warm_initial, _, _ = make_problem(2, args.particles)
+    device = args.device
+    graph, initial, factor, truth = make_problem(args.frames, args.particles, device=device)
+    g = torch.Generator(device=device).manual_seed(1)
+    warm, warm_initial, _, _ = make_problem(2, args.particles, device=device)
     particle_bp(warm, warm_initial, iterations=2, generator=g, kernel_scale=(0.01, 0.05))
-    small = initial[: args.loop_frames]
-    sub_unary = PoseUnary(truth[: args.loop_frames], 0.05)
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    if args.loop_frames:  # the loop version runs on the CPU
+        _, small, _, small_truth = make_problem(args.frames, args.particles)
+        small = small[: args.loop_frames]
+        sub_unary = PoseUnary(small_truth[: args.loop_frames], 0.05)
+        g_loop = torch.Generator().manual_seed(2)
     # Interleaved rounds, best of each: this machine's speed drifts by tens of percent
     # between seconds, and the minimum is the least disturbed measurement.
     ours, errs, loops = {None: [], 30: []}, {}, []
     for _ in range(args.repeats):
         for centres in (None, 30):
+            sync()
             t0 = time.perf_counter()
             res = particle_bp(
                 graph,
@@ -198,19 +208,23 @@ def main() -> None:
                 semiring=LogSemiring(),
                 proposal_centres=centres,
             )
+            sync()
             ours[centres].append((time.perf_counter() - t0) / args.iterations)
             errs[centres] = SE3.position_distance(res.mean, truth).mean().item()
+        if not args.loop_frames:
+            continue
         log_w = torch.full(small.shape[:3], -math.log(args.particles))
         values = small
         t0 = time.perf_counter()
         for _ in range(2):
-            values, log_w = loop_iteration(values, log_w, factor, sub_unary, g)
+            values, log_w = loop_iteration(values, log_w, factor, sub_unary, g_loop)
         loops.append((time.perf_counter() - t0) / 2 * args.frames / args.loop_frames)
     ours = {c: min(t) for c, t in ours.items()}
-    loop = min(loops)
+    loop = min(loops) if loops else math.nan
+    where = torch.cuda.get_device_name() if device.startswith("cuda") else f"{device}"
     print(
         f"15-node SE(3) tree, K={args.particles}, {args.frames} frames (torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads)"
+        f"{torch.get_num_threads()} CPU threads, particle_bp on {where})"
     )
     print(
         "| implementation | s / iteration (all frames) | speed-up vs loops | mean position error |"

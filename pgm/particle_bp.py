@@ -497,7 +497,7 @@ def _unary(graph: ParticleGraph, values: Tensor, estimates: Tensor) -> Tensor:
             raise ValueError(
                 f"unary[{ui}] {type(factor).__name__}.log_potential returned NaN or +inf"
             )
-        total.index_add_(1, nodes, out.to(total.dtype))
+        total.index_add_(1, nodes.to(total.device), out.to(total.dtype))
     return total
 
 
@@ -558,7 +558,8 @@ def _propose(
     ncomp = 1 + max_in
     comp_logq = values.new_full((b, v, ncomp, k), -math.inf)  # filled after sampling
     weights = values.new_zeros(v, ncomp)
-    continuous = torch.zeros(v, dtype=torch.bool)
+    device = values.device
+    continuous = torch.zeros(v, dtype=torch.bool, device=device)
     for space, nodes in graph.spaces:
         if not space.discrete:
             continuous[nodes] = True
@@ -617,19 +618,22 @@ def _propose(
         own[g] = (c_x, c_w)
         bi, ni, ki, picked = chosen(c_x, c_w, comp[:, nodes] == 0)
         moved = space.perturb(picked, _scaled(scales[g], kernel_mult), generator)
-        new[bi, nodes[ni], ki, : space.dim] = moved
+        new[bi, nodes.to(device)[ni], ki, : space.dim] = moved
     pushed = []
     for de in usable:
         factor = graph.pairwise[de.group][1]
         c_x, c_w = centres(log_w[:, de.source], values[:, de.source])
         pushed.append((de, c_x, c_w))
-        mask = (comp[:, de.target] == de.slot[None, :, None]) & continuous[de.target][None, :, None]
+        target = de.target.to(device)
+        mask = (comp[:, target] == de.slot.to(device)[None, :, None]) & continuous[target][
+            None, :, None
+        ]
         bi, ei, ki, x_src = chosen(c_x, c_w, mask)
         if len(bi) == 0:
             continue
         # one flat batch of (source particle, its edge) pairs: E = n, M = 1
         sample = factor.sample_target(x_src[None, :, None], ei, de.forward, generator)[0, :, 0]
-        new[bi, de.target[ei], ki, : sample.shape[-1]] = sample
+        new[bi, target[ei], ki, : sample.shape[-1]] = sample
 
     # Mixture density of every new particle under every component.
     for g, (space, nodes) in enumerate(graph.spaces):
