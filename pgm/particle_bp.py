@@ -221,9 +221,9 @@ def particle_bp(
             from (default: uniform, i.e. the initial particles are taken as a grid).
         loopy_iterations, loopy_damping: inner loopy-BP settings when the graph has cycles.
         batch_chunk: frames processed together in the proposal and BP steps (default: as
-            many as keep ~48 MB of pairwise tables in BP, and up to 2^20 particles in the
-            proposal; results do not depend on it except through the order of random
-            draws).
+            many as keep ~48 MB of pairwise tables in BP and up to 2^20 particles in the
+            proposal on a CPU, 1 GB and 2^24 elsewhere); results do not depend on it except
+            through the order of random draws.
         callback: called with each iteration's :class:`IterationStats`.
 
     Returns:
@@ -297,10 +297,12 @@ def particle_bp(
     # Defaults measured on a 2-core CPU: BP takes ~48 MB of (E, K, K) tables per chunk (1 to
     # 3 chunks measured alike, 5 slower: per-op overhead against cache reuse); the proposal
     # is many small ops (its mixture densities are evaluated in cache-sized blocks), so it
-    # takes up to 2^20 particles at once.
+    # takes up to 2^20 particles at once. A GPU has no such cache to keep to: chunks there
+    # only bound memory (1 GB of tables, 2^24 particles).
+    on_cpu = initial.device.type == "cpu"
     table_bytes = max(1, sum(len(e) for e, _ in graph.pairwise)) * k * k * initial.element_size()
-    chunks = _chunks(b, batch_chunk or (48 << 20) // table_bytes)
-    proposal_chunks = _chunks(b, batch_chunk or (1 << 20) // (v * k))
+    chunks = _chunks(b, batch_chunk or ((48 << 20) if on_cpu else (1 << 30)) // table_bytes)
+    proposal_chunks = _chunks(b, batch_chunk or ((1 << 20) if on_cpu else (1 << 24)) // (v * k))
 
     workspaces: dict = {}  # linear-space tables, reused by every iteration and chunk
     log_w = torch.full((b, v, k), -math.log(k), dtype=dtype, device=device)
