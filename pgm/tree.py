@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from pgm.graph import FactorGraph
@@ -47,16 +46,17 @@ class InferenceResult:
 def exclusive_products(x: Tensor, dim: int, semiring: Semiring) -> Tensor:
     """``out[i] = prod_{j != i} x[j]`` along ``dim`` without division (prefix x suffix).
 
-    Shapes: any; ``out`` has the shape of ``x``.
+    The scans run along ``dim`` itself (not moved last): a scan over a short axis with long
+    contiguous rows behind it is one fast kernel on CPU and GPU alike, where a strided
+    innermost scan is ~20x slower on a GPU. Shapes: any; ``out`` has the shape of ``x``.
     """
     n = x.shape[dim]
-    x = x.movedim(dim, -1)
-    prefix = semiring.cumprod(x, -1)
-    suffix = semiring.cumprod(x.flip(-1), -1).flip(-1)
-    one = semiring.one
-    prefix_excl = F.pad(prefix[..., : n - 1], (1, 0), value=one)
-    suffix_excl = F.pad(suffix[..., 1:], (0, 1), value=one)
-    return semiring.mul(prefix_excl, suffix_excl).movedim(-1, dim)
+    prefix = semiring.cumprod(x, dim)
+    suffix = semiring.cumprod(x.flip(dim), dim).flip(dim)
+    one = torch.full_like(x.narrow(dim, 0, 1), semiring.one)
+    prefix_excl = torch.cat([one, prefix.narrow(dim, 0, n - 1)], dim)
+    suffix_excl = torch.cat([suffix.narrow(dim, 1, n - 1), one], dim)
+    return semiring.mul(prefix_excl, suffix_excl)
 
 
 def _upward(graph: FactorGraph, semiring: Semiring) -> tuple[Tensor, Tensor, Tensor]:

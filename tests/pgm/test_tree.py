@@ -216,3 +216,18 @@ def test_against_pgmpy_belief_propagation():
             )
         pg_map = bp.map_query(names, show_progress=False)
         assert [pg_map[n] for n in names] == ours_map.assignment[0].tolist()
+
+
+@pytest.mark.parametrize("semiring", [LogSemiring(), MaxSemiring(), CountingSemiring()])
+@pytest.mark.parametrize("dim", [0, 1, 2])
+def test_exclusive_products_equal_the_product_of_the_others(semiring, dim):
+    """prefix x suffix along any axis equals multiplying every other entry directly."""
+    from pgm.tree import exclusive_products
+
+    x = torch.rand(3, 4, 5, dtype=torch.float64) * 2 - 1
+    if isinstance(semiring, CountingSemiring):
+        x = x.abs() + 0.5
+    out = exclusive_products(x, dim, semiring)
+    for i in range(x.shape[dim]):
+        others = torch.cat([x.narrow(dim, 0, i), x.narrow(dim, i + 1, x.shape[dim] - i - 1)], dim)
+        torch.testing.assert_close(out.select(dim, i), semiring.prod(others, dim=dim))
