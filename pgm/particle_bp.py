@@ -627,9 +627,8 @@ def _propose(
         c_x, c_w = centres(log_w[:, de.source], values[:, de.source])
         pushed.append((de, c_x, c_w))
         target = de.target.to(device)
-        mask = (comp[:, target] == de.slot.to(device)[None, :, None]) & continuous[target][
-            None, :, None
-        ]
+        drawn_here = comp[:, target] == de.slot.to(device)[None, :, None]
+        mask = drawn_here & continuous[target][None, :, None]
         bi, ei, ki, x_src = chosen(c_x, c_w, mask)
         if len(bi) == 0:
             continue

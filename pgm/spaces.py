@@ -263,8 +263,11 @@ def _se3_features(
     nf = 5 if rot_std is None else 15
     origin = pos_b.mean(-2, keepdim=True)
 
-    def side(pos: Tensor, quat: Tensor | None, scale_pos: float, scale_rot: float) -> Tensor:
-        """(N, F, n): scaled position, quadratic rotation features, then two free rows."""
+    def side(
+        pos: Tensor, quat: Tensor | None, scale_pos: float, scale_rot
+    ) -> tuple[Tensor, Tensor]:
+        """``(..., F, n)`` features -- scaled centred position, quadratic rotation features,
+        two rows left for the caller -- and the squared centred positions ``(..., n)``."""
         n = pos.shape[-2]
         out = pos.new_empty(*lead, nf, n)
         p = out[..., :3, :]
