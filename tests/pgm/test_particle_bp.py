@@ -7,7 +7,7 @@ import torch
 
 from pgm import FactorGraph, LogSemiring, MaxSemiring, TableFactor, tree_inference
 from pgm.continuous import ContinuousPairwise, GaussianUnary, LinearGaussian, UnaryFactor
-from pgm.particle_bp import ParticleGraph, particle_bp
+from pgm.particle_bp import ParticleGraph, ParticleResult, particle_bp
 from pgm.schedules import Geometric
 from pgm.spaces import Discrete, Euclidean
 
@@ -43,17 +43,18 @@ TREE_EDGES = torch.tensor([[0, 1], [1, 2], [1, 3], [3, 4], [0, 5]])
 CHAIN_EDGES = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5]])
 
 
-def _run_gaussian(edges, k, seed, gain=0.9, q_std=0.7, r_std=1.0, iterations=8, **kw):
+def _run_gaussian(edges, k, seed, gain=0.9, q_std=0.7, r_std=1.0, iterations=8, device="cpu", **kw):
+    """Particle BP on a linear-Gaussian graph (on ``device``) and the exact marginals."""
     v = int(edges.max()) + 1
     obs = torch.linspace(-2, 3, v, dtype=F64)
     graph = ParticleGraph(
         v,
         [(Euclidean(1), torch.arange(v))],
         [(edges, LinearGaussian(1, gain, 0.0, q_std))],
-        [(torch.arange(v), GaussianUnary(obs[:, None], r_std))],
+        [(torch.arange(v), GaussianUnary(obs[:, None].to(device), r_std))],
     )
-    g = torch.Generator().manual_seed(seed)
-    init = 3.0 * torch.randn(1, v, k, 1, generator=g, dtype=F64)
+    g = torch.Generator(device=device).manual_seed(seed)
+    init = 3.0 * torch.randn(1, v, k, 1, generator=g, dtype=F64, device=device)
     res = particle_bp(graph, init, iterations=iterations, generator=g, kernel_scale=0.3, **kw)
     mu, sd = gaussian_exact(v, edges, obs, r_std, gain, q_std)
     return res, mu, sd
@@ -212,7 +213,7 @@ class StateMeans(ContinuousPairwise):
         if not forward:
             raise NotImplementedError("the discrete end is never resampled")
         c = x_source[..., 0].long()
-        noise = torch.randn(c.shape, generator=generator, dtype=self.mu.dtype)
+        noise = torch.randn(c.shape, generator=generator, dtype=self.mu.dtype, device=c.device)
         return (self.mu[c] + self.s * noise).unsqueeze(-1)
 
     def log_target_density(self, x_target, x_source, edges, forward):
@@ -221,7 +222,7 @@ class StateMeans(ContinuousPairwise):
         ) - 0.5 * math.log(2 * math.pi)
 
 
-def test_hybrid_discrete_continuous_toy():
+def check_hybrid_toy(device="cpu"):
     """c in {0, 1, 2} uniform; x | c ~ N(mu_c, 0.5^2); y = x + N(0, 0.8^2) observed at 1.6.
     Exact: p(c | y) ~ N(y; mu_c, 0.5^2 + 0.8^2); E[x | y] = sum_c p(c|y) posterior mean."""
     mu = torch.tensor([-2.0, 0.0, 2.0], dtype=F64)
@@ -229,12 +230,13 @@ def test_hybrid_discrete_continuous_toy():
     graph = ParticleGraph(
         2,
         [(Discrete(3), torch.tensor([0])), (Euclidean(1), torch.tensor([1]))],
-        [(torch.tensor([[0, 1]]), StateMeans(mu, s))],
-        [(torch.tensor([1]), GaussianUnary(torch.tensor([[y]], dtype=F64), r))],
+        [(torch.tensor([[0, 1]]), StateMeans(mu.to(device), s))],
+        [(torch.tensor([1]), GaussianUnary(torch.tensor([[y]], dtype=F64, device=device), r))],
     )
-    g = torch.Generator().manual_seed(9)
-    init = 3.0 * torch.randn(1, 2, 500, 1, generator=g, dtype=F64)
+    g = torch.Generator(device=device).manual_seed(9)
+    init = 3.0 * torch.randn(1, 2, 500, 1, generator=g, dtype=F64, device=device)
     res = particle_bp(graph, init, iterations=6, generator=g, kernel_scale=[None, 0.3])
+    res = ParticleResult(res.particles.cpu(), res.log_weights.cpu(), res.mean, res.best)
     lik = torch.distributions.Normal(mu, math.sqrt(s**2 + r**2)).log_prob(
         torch.tensor(y, dtype=F64)
     )
@@ -246,6 +248,10 @@ def test_hybrid_discrete_continuous_toy():
     exact_x = (p_c * post_mean).sum()
     w = res.log_weights[0, 1].exp()
     assert abs((w * res.particles[0, 1, :, 0]).sum() - exact_x) < 0.08
+
+
+def test_hybrid_discrete_continuous_toy():
+    check_hybrid_toy()
 
 
 def test_same_seed_same_result_and_diagnostics():

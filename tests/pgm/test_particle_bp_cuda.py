@@ -8,9 +8,17 @@ import torch
 from pgm.continuous import GaussianUnary, LinearGaussian, RigidConnection
 from pgm.particle_bp import ParticleGraph, particle_bp
 from pgm.rotations import qexp, qmul, qrotate
+from pgm.semiring import MaxSemiring
 from pgm.spaces import SE3, Euclidean
 
-from .test_particle_bp import CHAIN_EDGES, TREE_EDGES, gaussian_exact, weighted_moments
+from .test_particle_bp import (
+    CHAIN_EDGES,
+    TREE_EDGES,
+    _run_gaussian,
+    check_hybrid_toy,
+    gaussian_exact,
+    weighted_moments,
+)
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 CUDA = torch.device("cuda")
@@ -78,3 +86,20 @@ def test_se3_body_on_cuda_is_as_accurate_as_on_cpu(centres):
         errors[device] = SE3.position_distance(res.mean.cpu(), truth).mean().item()
     assert errors["cuda"] < 0.045 and errors["cpu"] < 0.045, errors
     assert abs(errors["cuda"] - errors["cpu"]) < 0.15 * errors["cpu"], errors
+
+
+def test_loopy_max_product_and_own_proposal_on_cuda():
+    """The CPU tests' loopy, max-product and BPMC-style runs, on the GPU, same thresholds."""
+    edges = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0], [1, 4]])
+    res, mu, sd = _run_gaussian(edges, k=400, seed=6, gain=0.5, q_std=1.0, device=CUDA)
+    m, _ = weighted_moments(res)
+    assert ((m[0].cpu() - mu).abs() / sd).max() < 0.2
+    res, mu, sd = _run_gaussian(TREE_EDGES, k=400, seed=2, semiring=MaxSemiring(), device=CUDA)
+    assert ((res.best[0, :, 0].cpu() - mu).abs() / sd).max() < 0.25
+    res, mu, sd = _run_gaussian(CHAIN_EDGES, k=400, seed=1, proposal="own", device=CUDA)
+    m, s = weighted_moments(res)
+    assert ((s[0].cpu() / sd > 0.85) & (s[0].cpu() / sd < 1.15)).all()
+
+
+def test_hybrid_discrete_continuous_toy_on_cuda():
+    check_hybrid_toy(CUDA)
