@@ -6,7 +6,10 @@ frames, nodes and edges (particles stay tensors), measured in the same run. The 
 cheap synthetic Gaussian around a known pose; its cost is included in both (it is small).
 
 Usage: python benchmarks/bench_particle_bp.py [--frames 80] [--particles 150] [--loop-frames 4]
-       [--repeats 3]
+       [--repeats 3] [--device cpu|cuda]
+
+With ``--device cuda`` the same problem (drawn on the CPU) is solved on the GPU; the loop
+version always runs on the CPU (``--loop-frames 0`` skips it).
 """
 
 from __future__ import annotations
