@@ -232,9 +232,10 @@ class TableFactor(PairwiseFactor):
             forbidden = None if self._finite else torch.isneginf(t)
             if self.upper_bound is not None:
                 bound = float(self.upper_bound)
-                # A bound in [0, 80] needs no shift: exp(T) cannot overflow and the floor
-                # bound - 87 keeps exp on its fast path (one pass fewer over the table).
-                shift = 0.0 if 0.0 <= bound <= 80.0 else bound
+                # A bound in [0, 60] needs no shift (one pass fewer over the table): the floor
+                # bound - 87 keeps exp on its fast path, and entries <= e^60 leave float32
+                # room for sums over up to 1e12 states.
+                shift = 0.0 if 0.0 <= bound <= 60.0 else bound
                 peak = torch.full_like(self.table[..., 0], shift)
                 torch.clamp(t, min=bound + EXP_FLOOR, out=scaled)
                 if shift:
