@@ -21,15 +21,15 @@ import torch
 from torch import Tensor
 
 from pgm.factors import EdgeIndex, PairwiseFactor
-from pgm.rotations import qconj, qmul, qnormalize, qrotate
-from pgm.schedules import Constant, Schedule
-from pgm.spaces import (
+from pgm.kernels import (
     ROTATION_KERNELS,
     rotation_log_kernel_from_dot,
     rotation_noise,
     se3_kernel_mixture,
     se3_kernel_table,
 )
+from pgm.rotations import qconj, qmul, qnormalize, qrotate
+from pgm.schedules import Constant, Schedule
 
 __all__ = [
     "ContinuousPairwise",
@@ -173,7 +173,7 @@ class RigidConnection(ContinuousPairwise):
     ``psi(x_a, x_b) = N(p_a + R_a o_a - (p_b + R_b o_b); 0, s_p^2 I) * k(R_a r, R_b; s_r)``:
     the joint seen from part a (point ``o_a`` in a's frame) meets the joint seen from part b
     (``o_b`` in b's frame); ``k`` is the rotation kernel of the kind ``rotation`` (see
-    :func:`pgm.spaces.rotation_noise`: an isotropic Bingham density by default, or the
+    :func:`pgm.kernels.rotation_noise`: an isotropic Bingham density by default, or the
     Gaussian of rotation vectors) around the mean relative rotation ``r``. Both spreads are
     multiplied by the schedule.
 

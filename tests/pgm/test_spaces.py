@@ -1,4 +1,5 @@
-"""State spaces and rotations: round trips, kernel normalisation, manifold means."""
+"""State spaces, rotations and their kernels: round trips, kernel normalisation, exact
+samplers, manifold means."""
 
 import math
 
@@ -6,17 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from pgm.rotations import qangle, qconj, qexp, qlog, qmul, qnormalize, qrotate
-from pgm.spaces import (
-    SE3,
-    Discrete,
-    Euclidean,
+from pgm.kernels import (
     _bingham_envelope,
     gaussian_position_table,
     rotation_log_kernel_from_dot,
     rotation_noise,
     so3_log_kernel,
 )
+from pgm.rotations import qangle, qconj, qexp, qlog, qmul, qnormalize, qrotate
+from pgm.spaces import SE3, Discrete, Euclidean
 
 F64 = torch.float64
 
@@ -178,7 +177,7 @@ def test_space_validation_errors():
 
 def test_so3_kernel_polynomial_matches_closed_form():
     """The fused series for the exp-map Jacobian against log(h^2 / sin^2 h) + the Gaussian."""
-    from pgm.spaces import so3_log_kernel_from_dot
+    from pgm.kernels import so3_log_kernel_from_dot
 
     angle = torch.linspace(0.0, math.pi, 2001, dtype=F64)[1:]
     std = 0.4
