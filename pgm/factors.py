@@ -203,11 +203,11 @@ class TableFactor(PairwiseFactor):
             return self._matmul_message(h, edges, forward)
         return super().message(h, edges, forward, semiring, xa, xb)
 
-    def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor, float]:
+    def _scaled_exp(self, forward: bool) -> tuple[Tensor, Tensor | float, float]:
         """``exp(T - peak)`` stored edge-major ``(E, B, K, K)`` (so that a run of edges is a
-        view that flattens to a batched matrix without a copy), ``peak`` ``(B, E, K)``: per
-        column (forward) or row (backward), or one shift for both under an upper bound; and
-        the value the smallest entries were raised to."""
+        view that flattens to a batched matrix without a copy), ``peak``: ``(B, E, K)`` per
+        column (forward) or row (backward), or one number for both under an upper bound;
+        and the value the smallest entries were raised to."""
         cache = self.__dict__.setdefault("_exp_cache", {})
         key = None if self.upper_bound is not None else forward
         if key not in cache:
@@ -236,7 +236,7 @@ class TableFactor(PairwiseFactor):
                 # bound - 87 keeps exp on its fast path, and entries <= e^60 leave float32
                 # room for sums over up to 1e12 states.
                 shift = 0.0 if 0.0 <= bound <= 60.0 else bound
-                peak = torch.full_like(self.table[..., 0], shift)
+                peak = shift
                 torch.clamp(t, min=bound + EXP_FLOOR, out=scaled)
                 if shift:
                     scaled.sub_(shift)
@@ -259,7 +259,9 @@ class TableFactor(PairwiseFactor):
         scaled, peak, floor = self._scaled_exp(forward)
         edges = _as_slice(edges)
         if self.table.shape[1] > 1:
-            scaled, peak = scaled[edges], peak[:, edges]
+            scaled = scaled[edges]
+            if isinstance(peak, Tensor):
+                peak = peak[:, edges]
         h_peak = h.amax(-1, keepdim=True)
         h_peak = torch.where(torch.isfinite(h_peak), h_peak, torch.zeros_like(h_peak))
         b, e, k = h.shape
@@ -271,7 +273,9 @@ class TableFactor(PairwiseFactor):
         # faster on CPU than torch's batched matrix-vector product, which walks columns.
         s = torch.bmm(rows, scaled) if forward else torch.linalg.vecdot(scaled, rows)
         s = s.reshape(e, b, k).transpose(0, 1)
-        out = torch.log(s) + peak + h_peak
+        out = torch.log(s) + h_peak
+        if isinstance(peak, Tensor) or peak:
+            out = out + peak
         # Redo exactly what the floor could have decided: all mass underflowed (or truly
         # none), or -- against a shared bound, which no entry need reach -- a sum within a
         # factor 1e6 of the floor's own largest contribution (so it is off by < 1e-6).
