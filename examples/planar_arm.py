@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from pgm import MaxSemiring
+from pgm import Capability, MaxSemiring
 from pgm.continuous import ContinuousPairwise, UnaryFactor
 from pgm.particle_bp import ParticleGraph, particle_bp
 from pgm.schedules import Geometric
@@ -37,6 +37,8 @@ class LinkJoint(ContinuousPairwise):
     Both factors are normalised in either end, so psi is also the density of its samplers.
     ``lengths`` holds the length of the parent (a) link of each edge: shape (E,).
     """
+
+    capabilities = ContinuousPairwise.capabilities | {Capability.SAMPLABLE}
 
     def __init__(self, lengths, pos_std, angle_std, schedule=None):
         super().__init__(schedule)

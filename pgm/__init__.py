@@ -11,10 +11,20 @@ from pgm.continuous import (
     ContinuousPairwise,
     GaussianUnary,
     LinearGaussian,
+    LookupGaussian,
     RigidConnection,
     UnaryFactor,
 )
-from pgm.factors import BandedMonotoneFactor, MonotoneFactor, PairwiseFactor, TableFactor
+from pgm.factors import (
+    AnnealingStep,
+    BandedMonotoneFactor,
+    Capability,
+    FactorWrapper,
+    MissingCapabilityError,
+    MonotoneFactor,
+    PairwiseFactor,
+    TableFactor,
+)
 from pgm.graph import FactorGraph, GraphError, NotATreeError
 from pgm.loopy import loopy_bp
 from pgm.particle_bp import IterationStats, ParticleGraph, ParticleResult, particle_bp
@@ -32,13 +42,16 @@ from pgm.tree import InferenceResult, tree_inference, tree_map
 
 __all__ = [
     "SE3",
+    "AnnealingStep",
     "BandedMonotoneFactor",
+    "Capability",
     "Constant",
     "ContinuousPairwise",
     "CountingSemiring",
     "Discrete",
     "Euclidean",
     "FactorGraph",
+    "FactorWrapper",
     "GaussianUnary",
     "Geometric",
     "GraphError",
@@ -48,7 +61,9 @@ __all__ = [
     "Linear",
     "LinearGaussian",
     "LogSemiring",
+    "LookupGaussian",
     "MaxSemiring",
+    "MissingCapabilityError",
     "MonotoneFactor",
     "NotATreeError",
     "PairwiseFactor",

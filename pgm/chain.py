@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pgm.factors import PairwiseFactor
+from pgm.factors import Capability, PairwiseFactor
 from pgm.graph import GraphError
 from pgm.semiring import LogSemiring, MaxSemiring, Semiring
 from pgm.tree import InferenceResult
@@ -46,6 +46,14 @@ def _check_chain(unary: Tensor, factor: PairwiseFactor) -> Tensor:
         torch.isnan(unary).any() or torch.isposinf(unary).any()
     ):
         raise GraphError("chain unary contains NaN or +inf (log-potentials must be finite or -inf)")
+    if not isinstance(factor, PairwiseFactor):
+        raise GraphError(f"factor must be a PairwiseFactor; got {type(factor).__name__}")
+    if Capability.READS_VALUES in factor.capabilities:
+        raise GraphError(
+            f"factor {type(factor).__name__} reads support values (capability "
+            f"'{Capability.READS_VALUES.value}'); a chain's states are indices, so it needs a "
+            "factor over states (use pgm.particle_bp for particles)"
+        )
     if factor.num_edges is not None and factor.num_edges != unary.shape[1] - 1:
         raise GraphError(
             f"factor {type(factor).__name__} has parameters for {factor.num_edges} edges; a chain "
@@ -133,7 +141,8 @@ def chain_map(
         unary: ``(B, N, K)`` log-potentials (or ``(N, K)``).
         factor: the pairwise factor on every edge ``(t, t + 1)``.
         use_fused: let a factor that offers a fused ``viterbi(unary)`` kernel run the whole
-            sweep (:meth:`pgm.MonotoneFactor.viterbi`); ``False`` forces the generic path.
+            sweep (the ``fused_viterbi`` capability, e.g. :meth:`pgm.MonotoneFactor.viterbi`);
+            ``False`` forces the generic path.
         overwrite: allow a fused kernel to use ``unary`` as its work buffer (saves a copy
             of a possibly very large tensor; ``unary`` is garbage afterwards).
 
@@ -147,8 +156,7 @@ def chain_map(
     semiring = MaxSemiring()
     unary = _check_chain(unary, factor)
     b, n, _k = unary.shape
-    fused = getattr(factor, "viterbi", None)
-    fused_result = fused(unary, overwrite=overwrite) if fused is not None and use_fused else None
+    fused_result = factor.viterbi(unary, overwrite=overwrite) if use_fused else None
     if fused_result is not None:
         score, states = fused_result
         _check_feasible(score)

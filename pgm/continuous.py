@@ -1,10 +1,11 @@
 """Factors over continuous supports: samplers for proposals, annealing, observation factors.
 
-Pairwise factors for particle BP extend :class:`pgm.factors.PairwiseFactor` with a
-*conditional sampler*: given particles of one end, draw the other end from
-``psi(x_source, .)`` normalised as a density, and evaluate that density (the proposal density
-``q`` needs it). Annealed factors scale their spread by a :class:`~pgm.schedules.Schedule`
-that the engine advances with :meth:`set_iteration`.
+Pairwise factors for particle BP read particle values and usually declare the *samplable*
+capability (:class:`pgm.factors.Capability`): given particles of one end, draw the other end
+from ``psi(x_source, .)`` normalised as a density, and evaluate that density (the proposal
+density ``q`` needs it). Annealed factors scale their spread by a
+:class:`~pgm.schedules.Schedule`; the engine asks each for its value at an iteration with
+``annealed(step)``, never modifying the factor it was given.
 
 Observation (unary) factors see a node group's particles *and the current estimates of every
 node*, so an occlusion-aware factor can render a part together with the rest of the body.
@@ -15,12 +16,13 @@ particles, ``D`` state width.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
 from torch import Tensor
 
-from pgm.factors import EdgeIndex, PairwiseFactor
+from pgm.factors import AnnealingStep, Capability, EdgeIndex, PairwiseFactor
 from pgm.kernels import (
     ROTATION_KERNELS,
     rotation_log_kernel_from_dot,
@@ -35,6 +37,7 @@ __all__ = [
     "ContinuousPairwise",
     "GaussianUnary",
     "LinearGaussian",
+    "LookupGaussian",
     "RigidConnection",
     "UnaryFactor",
 ]
@@ -43,67 +46,39 @@ _LOG_2PI = math.log(2 * math.pi)
 
 
 class ContinuousPairwise(PairwiseFactor):
-    """A pairwise factor over particle values that can sample either end given the other.
+    """A pairwise factor over particle values, annealed by a schedule.
 
-    Subclasses implement :meth:`log_potential` (the table over two particle sets) and, to take
-    part in proposals, :meth:`sample_target` and :meth:`log_target_density`.
+    Subclasses implement :meth:`log_potential` (the table over two particle sets) and, to
+    take part in proposals, :meth:`sample_target` and :meth:`log_target_density`, declaring
+    ``capabilities = ContinuousPairwise.capabilities | {Capability.SAMPLABLE}``. Spreads read
+    :attr:`anneal`, the schedule's multiplier at the step this value was made for by
+    :meth:`annealed` (a fresh factor is at iteration 0).
     """
 
-    can_sample = True
+    capabilities = frozenset({Capability.READS_VALUES, Capability.ANNEALED})
+    schedule: Schedule = Constant()
+    _multiplier: float | None = None
 
     def __init__(self, schedule: Schedule | None = None):
         self.schedule = schedule or Constant()
-        self.iteration = 0
 
-    def set_iteration(self, iteration: int) -> None:
-        """Advance the annealing schedule (called by the engine before each iteration)."""
-        self.iteration = iteration
+    def annealed(self, step: AnnealingStep) -> ContinuousPairwise:
+        """A shallow copy whose spreads are multiplied by ``schedule(step.iteration)``
+        (``self`` when that is the multiplier already)."""
+        multiplier = self.schedule(step.iteration)
+        if multiplier == self.anneal:
+            return self
+        out = copy.copy(self)
+        out._multiplier = multiplier
+        return out
 
     @property
     def anneal(self) -> float:
-        """Current spread multiplier ``schedule(iteration)``."""
-        return self.schedule(self.iteration)
+        """Spread multiplier of this value: ``schedule(iteration)`` at its annealing step."""
+        return self.schedule(0) if self._multiplier is None else self._multiplier
 
-    def log_potential_into(
-        self, edges: EdgeIndex, xa: Tensor, xb: Tensor, num_states: int, out: Tensor
-    ) -> Tensor:
-        """:meth:`log_potential`, written into ``out`` (a buffer the engine reuses across
-        iterations, as many elements as the table) where the factor can; the default
-        ignores ``out``."""
-        return self.log_potential(edges, xa, xb, num_states)
 
-    def log_potential_bound(self) -> float | None:
-        """A number no entry of :meth:`log_potential` exceeds at the current annealing step
-        (e.g. a normalised kernel's peak), or ``None``. With it, BP normalises the cached
-        tables once for both message directions."""
-        return None
-
-    def sample_target(
-        self, x_source: Tensor, edges: EdgeIndex, forward: bool, generator: torch.Generator | None
-    ) -> Tensor:
-        """Draw ``x_target ~ psi(x_source, .)`` (normalised). Shapes: (B, E, M, D) -> (B, E, M, D_t)."""
-        raise NotImplementedError(f"{type(self).__name__} has no conditional sampler")
-
-    def log_target_density(
-        self, x_target: Tensor, x_source: Tensor, edges: EdgeIndex, forward: bool
-    ) -> Tensor:
-        """Log density of :meth:`sample_target`. Shapes: (B, E, K, D_t), (B, E, M, D_s) -> (B, E, K, M)."""
-        raise NotImplementedError(f"{type(self).__name__} has no conditional density")
-
-    def log_target_mixture(
-        self,
-        x_target: Tensor,
-        x_source: Tensor,
-        log_w_source: Tensor,
-        edges: EdgeIndex,
-        forward: bool,
-    ) -> Tensor:
-        """``log sum_m w_m psi(x_source_m -> x_target_k)``: the density of each target under
-        the mixture of conditionals (the proposal's neighbour component). Override when it
-        can be computed without the full table. Shapes: (B, E, K, D_t), (B, E, M, D_s),
-        (B, E, M) -> (B, E, K)."""
-        dens = self.log_target_density(x_target, x_source, edges, forward)
-        return torch.logsumexp(dens + log_w_source.unsqueeze(-2), -1)
+_SAMPLABLE = ContinuousPairwise.capabilities | {Capability.SAMPLABLE}
 
 
 class LinearGaussian(ContinuousPairwise):
@@ -116,6 +91,8 @@ class LinearGaussian(ContinuousPairwise):
         std: scalar or ``(dim,)`` standard deviation.
         schedule: annealing multiplier of ``std``.
     """
+
+    capabilities = _SAMPLABLE
 
     def __init__(self, dim: int, gain: float = 1.0, offset=0.0, std=1.0, schedule=None):
         super().__init__(schedule)
@@ -185,6 +162,8 @@ class RigidConnection(ContinuousPairwise):
         rotation: ``"bingham"`` or ``"gaussian"``, the rotation kernel's family.
     """
 
+    capabilities = _SAMPLABLE | {Capability.BOUNDED, Capability.BUFFERED}
+
     def __init__(
         self,
         offset_a,
@@ -221,7 +200,8 @@ class RigidConnection(ContinuousPairwise):
         if rot_std is not None and not rot_std > 0:
             raise ValueError(f"rot_std must be > 0 or None; got {rot_std}")
         self.pos_std, self.rot_std = float(pos_std), rot_std
-        self.can_sample = rot_std is not None
+        if rot_std is None:  # an improper conditional in the rotation: nothing to sample
+            self.capabilities = type(self).capabilities - {Capability.SAMPLABLE}
 
     def _param(self, t: Tensor, edges: EdgeIndex, like: Tensor) -> Tensor:
         t = t.to(like)
@@ -316,14 +296,34 @@ class RigidConnection(ContinuousPairwise):
 class UnaryFactor:
     """Observation factor ``phi_j(x_j, X_-j, z_j)`` over a group of nodes.
 
-    Subclasses implement :meth:`log_potential`. The engine calls it once per iteration for
-    the whole group, with the current estimates of all nodes (from the previous iteration)
-    so that a factor may score a node's particles together with the rest of the model.
+    Subclasses implement :meth:`log_potential`; an observation that anneals (a likelihood
+    sharpened over the iterations) also overrides :meth:`annealed`.
+
+    The contract of one iteration: the engine calls :meth:`log_potential` once for the whole
+    group and the whole batch, after the proposal has drawn this iteration's particles and
+    before any message is computed, with
+
+    * ``x``: the new particles of the group's nodes;
+    * ``estimates``: one value per node of the graph (all V, not just the group), fixed for
+      the iteration so that every particle of every node is scored against the same rest
+      of the model: on the very first iteration the mean of each node's initial particles
+      (the starting posture), on every later one -- restarts included -- each node's
+      highest-weight particle of the previous iteration (``ParticleResult.best`` so far).
+      Discrete nodes' entries are their state index as a float. Row ``j`` of a node in the
+      group is its own old estimate: an occlusion-aware factor scores ``x_j`` in its place
+      (the ``X_-j`` of Eq. 28).
+
+    It returns finite log-potentials or ``-inf`` (checked), and must not keep state between
+    calls that changes its answer: the same inputs give the same scores.
     """
 
     def log_potential(self, x: Tensor, nodes: Tensor, estimates: Tensor) -> Tensor:
         """Shapes: x (B, N, K, D) particles of ``nodes`` (N,), estimates (B, V, D) -> (B, N, K)."""
         raise NotImplementedError
+
+    def annealed(self, step: AnnealingStep) -> UnaryFactor:
+        """This factor at an annealing step, as a value (default: ``self``)."""
+        return self
 
 
 class GaussianUnary(UnaryFactor):
@@ -337,3 +337,75 @@ class GaussianUnary(UnaryFactor):
     def log_potential(self, x, nodes, estimates):
         z = (x[..., : self.dim] - self.mean.to(x).unsqueeze(-2)) / self.std.to(x)
         return -0.5 * z.square().sum(-1)
+
+
+class LookupGaussian(ContinuousPairwise):
+    """A discrete node choosing the mean of a continuous one:
+    ``psi(c, x) = N(x[:dim]; means[c], (anneal * std)^2 I)``.
+
+    Edges run from the discrete node (a, states ``0..S-1``) to the continuous node (b). This
+    couples a correspondence chain (states = reference frames) to the quantities it selects
+    (the reference's value at the chosen frame). Only the continuous end is ever sampled (a
+    discrete node's support is fixed).
+
+    Args:
+        means: ``(S, dim)`` one mean per state, or ``(E, S, dim)`` per edge.
+        std: scalar or ``(dim,)`` standard deviation. schedule: annealing multiplier of it.
+    """
+
+    capabilities = _SAMPLABLE
+
+    def __init__(self, means: Tensor, std, schedule: Schedule | None = None):
+        super().__init__(schedule)
+        if not isinstance(means, Tensor) or means.dim() not in (2, 3):
+            shape = tuple(means.shape) if isinstance(means, Tensor) else type(means).__name__
+            raise ValueError(f"means must have shape (S, dim) or (E, S, dim); got {shape}")
+        if not torch.isfinite(means).all():
+            raise ValueError("means must be finite")
+        self.means = means if means.dim() == 3 else means.unsqueeze(0)  # (E or 1, S, dim)
+        if means.dim() == 3:
+            self.num_edges = means.shape[0]
+        self.dim = means.shape[-1]
+        std = torch.as_tensor(std, dtype=means.dtype)
+        self.std = std.expand(self.dim) if std.dim() == 0 else std
+        if self.std.shape != (self.dim,) or not (self.std > 0).all():
+            raise ValueError(
+                f"std must be > 0, a scalar or shape ({self.dim},); got {tuple(std.shape)}"
+            )
+
+    def _mean(self, state: Tensor, edges: EdgeIndex) -> Tensor:
+        """Means of states ``(B, E, M)`` (values of the discrete end) -> (B, E, M, dim)."""
+        means = self.means.to(state.device)
+        if means.shape[0] > 1:
+            means = means[edges]
+        s = state.long().clamp(0, means.shape[1] - 1)  # padding states are clamped (no mass)
+        e = torch.arange(means.shape[0], device=state.device)[None, :, None]
+        e = e if means.shape[0] > 1 else torch.zeros_like(e)
+        return means[e.expand_as(s), s]
+
+    def _log_gauss(self, x: Tensor, mean: Tensor) -> Tensor:
+        """x (B, E, K, D), mean (B, E, M, dim) -> (B, E, K, M)."""
+        std = self.std.to(x) * self.anneal
+        z = (x[..., : self.dim].unsqueeze(-2) - mean.to(x).unsqueeze(-3)) / std
+        return (-0.5 * z.square() - torch.log(std) - 0.5 * _LOG_2PI).sum(-1)
+
+    def log_potential(self, edges, xa, xb, num_states):
+        return self._log_gauss(xb, self._mean(xa[..., 0], edges)).transpose(-1, -2)  # [c, x]
+
+    def _check_forward(self, forward: bool) -> None:
+        if not forward:
+            raise ValueError(
+                "LookupGaussian samples only its continuous end (b): its discrete end is "
+                "never resampled"
+            )
+
+    def sample_target(self, x_source, edges, forward, generator):
+        self._check_forward(forward)
+        mean = self._mean(x_source[..., 0], edges).to(x_source.dtype)
+        std = self.std.to(mean) * self.anneal
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+        return mean + std * noise
+
+    def log_target_density(self, x_target, x_source, edges, forward):
+        self._check_forward(forward)
+        return self._log_gauss(x_target, self._mean(x_source[..., 0], edges))

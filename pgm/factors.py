@@ -18,7 +18,9 @@ or ``None`` for a discrete support (the state index is the value).
 
 from __future__ import annotations
 
+import enum
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -26,21 +28,131 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pgm.semiring import LogSemiring, Semiring
+from pgm.tuning import EXP_FLOOR, MATMUL_MIN_STATES, UNSHIFTED_BOUND_MAX
 
-__all__ = ["BandedMonotoneFactor", "MonotoneFactor", "PairwiseFactor", "TableFactor"]
+__all__ = [
+    "CAPABILITY_METHODS",
+    "AnnealingStep",
+    "BandedMonotoneFactor",
+    "Capability",
+    "FactorWrapper",
+    "MissingCapabilityError",
+    "MonotoneFactor",
+    "PairwiseFactor",
+    "TableFactor",
+]
 
 EdgeIndex = Tensor | slice
+
+
+class Capability(enum.Enum):
+    """An optional ability of a pairwise factor, declared in its ``capabilities``.
+
+    Every ability has a default on :class:`PairwiseFactor` (so the engine calls the methods
+    without probing for them); declaring it says the factor really provides it, which graphs
+    check when they are built.
+    """
+
+    #: ``log_potential`` reads the support values ``xa``, ``xb`` (particles) rather than
+    #: state indices: engines pass values, and particle BP rebuilds its table every iteration
+    READS_VALUES = "reads_values"
+    #: ``annealed(step)`` returns the factor at an iteration of its annealing schedule
+    ANNEALED = "annealed"
+    #: ``sample_target`` draws ``x_target ~ psi(x_source, .)``, ``log_target_density`` is
+    #: its density and ``log_target_mixture`` the density under a mixture of sources; the
+    #: mixture proposal of particle BP needs it on edges into continuous nodes
+    SAMPLABLE = "samplable"
+    #: ``log_potential_bound()`` is a number no table entry exceeds (BP then normalises one
+    #: linear-space table for both message directions)
+    BOUNDED = "bounded"
+    #: ``log_potential_into(..., out)`` writes the table into a buffer the engine reuses
+    BUFFERED = "buffered"
+    #: ``viterbi(unary)`` runs a whole chain's MAP sweep in one fused kernel
+    FUSED_VITERBI = "fused_viterbi"
+    #: ``message``, ``source_given_target`` and ``backtrack`` are structured kernels that
+    #: never build the dense ``(K, K)`` table (which may be too large to exist)
+    STRUCTURED = "structured"
+
+
+#: The methods behind each capability: one place, which :class:`FactorWrapper` must forward
+#: entirely (checked when this module is imported). ``READS_VALUES`` is a property of
+#: ``log_potential`` itself.
+CAPABILITY_METHODS: dict[Capability, tuple[str, ...]] = {
+    Capability.READS_VALUES: (),
+    Capability.ANNEALED: ("annealed",),
+    Capability.SAMPLABLE: ("sample_target", "log_target_density", "log_target_mixture"),
+    Capability.BOUNDED: ("log_potential_bound",),
+    Capability.BUFFERED: ("log_potential_into",),
+    Capability.FUSED_VITERBI: ("viterbi",),
+    Capability.STRUCTURED: ("message", "source_given_target", "backtrack"),
+}
+#: what every factor has (``log_potential`` required, the rest generic over the table)
+CORE_METHODS = ("log_potential", "message", "source_given_target", "backtrack")
+#: the methods a class declaring a capability must implement itself (the others of
+#: :data:`CAPABILITY_METHODS` have generic defaults that stay correct)
+_REQUIRED = {
+    Capability.SAMPLABLE: ("sample_target", "log_target_density"),
+    Capability.STRUCTURED: ("message",),
+}
+
+
+@dataclass(frozen=True)
+class AnnealingStep:
+    """Where the engine is in its iteration sequence; annealed factors read their schedule
+    at ``iteration`` (0-based; restarts run the schedule again)."""
+
+    iteration: int = 0
+    restart: int = 0
+
+
+class MissingCapabilityError(NotImplementedError):
+    """A factor was asked for an ability it does not declare."""
+
+    def __init__(self, factor: object, capability: Capability):
+        methods = ", ".join(CAPABILITY_METHODS[capability])
+        super().__init__(
+            f"{type(factor).__name__} does not declare the capability "
+            f"'{capability.value}' ({methods})"
+        )
 
 
 class PairwiseFactor:
     """Base class of pairwise factors on a group of oriented edges ``(a, b)``.
 
+    Subclasses implement :meth:`log_potential`; optional abilities are the
+    :class:`Capability` members listed in ``capabilities``, each with a default here
+    (a generic dense kernel, ``None`` for "no fast path", or :class:`MissingCapabilityError`
+    for a sampler). A class that declares a capability must override its methods (checked
+    when the class is defined).
+
     Attributes:
         num_edges: number of edges this factor carries parameters for, or ``None`` when the
             parameters are shared by any number of edges (then any ``edges`` index is valid).
+        num_states: the number of states per node its tables are made for (a fixed-size
+            table), or ``None`` when it works on supports of any size.
+        capabilities: the declared :class:`Capability` set.
     """
 
     num_edges: int | None = None
+    num_states: int | None = None
+    capabilities: frozenset[Capability] = frozenset()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        declared = cls.__dict__.get("capabilities")
+        if not isinstance(declared, (frozenset, set)):
+            return  # inherited, or computed per instance (wrappers)
+        for capability in declared:
+            lacking = [
+                m
+                for m in _REQUIRED.get(capability, CAPABILITY_METHODS[capability])
+                if getattr(cls, m) is getattr(PairwiseFactor, m)
+            ]
+            if lacking:
+                raise TypeError(
+                    f"{cls.__name__} declares the capability '{capability.value}' but does "
+                    f"not implement {', '.join(lacking)}"
+                )
 
     def log_potential(
         self, edges: EdgeIndex, xa: Tensor | None, xb: Tensor | None, num_states: int
@@ -59,6 +171,63 @@ class PairwiseFactor:
         """
         raise NotImplementedError(f"{type(self).__name__} must implement log_potential")
 
+    # -- annealed ----------------------------------------------------------------------------
+    def annealed(self, step: AnnealingStep) -> PairwiseFactor:
+        """This factor at an annealing step: a value (``self`` is never modified), so one
+        factor may be shared by several graphs. Default: ``self`` (nothing anneals)."""
+        return self
+
+    # -- bounded / buffered ------------------------------------------------------------------
+    def log_potential_bound(self) -> float | None:
+        """A number no entry of :meth:`log_potential` exceeds (e.g. a normalised kernel's
+        peak), or ``None`` (the default: unknown)."""
+        return None
+
+    def log_potential_into(
+        self, edges: EdgeIndex, xa: Tensor, xb: Tensor, num_states: int, out: Tensor
+    ) -> Tensor:
+        """:meth:`log_potential`, written into ``out`` (a flat buffer the engine reuses
+        across iterations, as many elements as the table) where the factor can; the
+        default ignores ``out``. Returns the table."""
+        return self.log_potential(edges, xa, xb, num_states)
+
+    # -- samplable ---------------------------------------------------------------------------
+    def sample_target(
+        self, x_source: Tensor, edges: EdgeIndex, forward: bool, generator: torch.Generator | None
+    ) -> Tensor:
+        """Draw ``x_target ~ psi(x_source, .)`` (normalised as a density of the target):
+        the target is ``b`` when ``forward``, else ``a``. Shapes: (B, E, M, D) -> (B, E, M, D_t)."""
+        raise MissingCapabilityError(self, Capability.SAMPLABLE)
+
+    def log_target_density(
+        self, x_target: Tensor, x_source: Tensor, edges: EdgeIndex, forward: bool
+    ) -> Tensor:
+        """Log density of :meth:`sample_target`. Shapes: (B, E, K, D_t), (B, E, M, D_s) -> (B, E, K, M)."""
+        raise MissingCapabilityError(self, Capability.SAMPLABLE)
+
+    def log_target_mixture(
+        self,
+        x_target: Tensor,
+        x_source: Tensor,
+        log_w_source: Tensor,
+        edges: EdgeIndex,
+        forward: bool,
+    ) -> Tensor:
+        """``log sum_m w_m psi(x_source_m -> x_target_k)``: the density of each target under
+        the mixture of conditionals (the proposal's neighbour component). Default: a
+        log-sum-exp over :meth:`log_target_density`. Shapes: (B, E, K, D_t), (B, E, M, D_s),
+        (B, E, M) -> (B, E, K)."""
+        dens = self.log_target_density(x_target, x_source, edges, forward)
+        return torch.logsumexp(dens + log_w_source.unsqueeze(-2), -1)
+
+    # -- fused Viterbi -----------------------------------------------------------------------
+    def viterbi(self, unary: Tensor, overwrite: bool = False) -> tuple[Tensor, Tensor] | None:
+        """A fused MAP sweep of a chain with this factor on every edge ``(n, n + 1)``:
+        score (B,) and states (B, N), or ``None`` (the default) to leave it to the generic
+        path. Shapes: ``unary`` (B, N, K)."""
+        return None
+
+    # -- messages (structured kernels override these) ----------------------------------------
     def message(
         self,
         h: Tensor,
@@ -119,9 +288,84 @@ class PairwiseFactor:
         return (h + cond).argmax(-1)
 
 
-#: lower bound applied before exp() of log-values that are 0 at their maximum: the CPU exp
-#: leaves its vectorised path below about -87.3 (float32 underflow), at a ~40x cost
-EXP_FLOOR = -87.0
+class FactorWrapper(PairwiseFactor):
+    """A factor that presents ``base`` differently (e.g. on other edges) and forwards every
+    method of the interface -- each capability's methods (:data:`CAPABILITY_METHODS`) and the
+    core ones -- with its edges mapped by :meth:`map_edges`. Declares what its base declares
+    (less what :meth:`drops` removes). A capability added to the registry without a
+    forwarding method here fails at import.
+    """
+
+    def __init__(self, base: PairwiseFactor):
+        if not isinstance(base, PairwiseFactor):
+            raise TypeError(f"base must be a PairwiseFactor; got {type(base).__name__}")
+        self.base = base
+
+    def map_edges(self, edges: EdgeIndex) -> EdgeIndex:
+        """This wrapper's edges -> the base's (default: the same)."""
+        return edges
+
+    def drops(self) -> frozenset[Capability]:
+        """Capabilities of the base that this wrapper cannot offer (default: none)."""
+        return frozenset()
+
+    def rewrap(self, base: PairwiseFactor) -> FactorWrapper:
+        """The same wrapper around another base (used by :meth:`annealed`)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement rewrap")
+
+    @property
+    def capabilities(self) -> frozenset[Capability]:  # type: ignore[override]
+        return frozenset(self.base.capabilities) - self.drops()
+
+    def log_potential(self, edges, xa, xb, num_states):
+        return self.base.log_potential(self.map_edges(edges), xa, xb, num_states)
+
+    def annealed(self, step):
+        base = self.base.annealed(step)
+        return self if base is self.base else self.rewrap(base)
+
+    def log_potential_bound(self):
+        return self.base.log_potential_bound()
+
+    def log_potential_into(self, edges, xa, xb, num_states, out):
+        return self.base.log_potential_into(self.map_edges(edges), xa, xb, num_states, out)
+
+    def sample_target(self, x_source, edges, forward, generator):
+        return self.base.sample_target(x_source, self.map_edges(edges), forward, generator)
+
+    def log_target_density(self, x_target, x_source, edges, forward):
+        return self.base.log_target_density(x_target, x_source, self.map_edges(edges), forward)
+
+    def log_target_mixture(self, x_target, x_source, log_w_source, edges, forward):
+        return self.base.log_target_mixture(
+            x_target, x_source, log_w_source, self.map_edges(edges), forward
+        )
+
+    def viterbi(self, unary, overwrite=False):
+        if Capability.FUSED_VITERBI in self.drops():
+            return None
+        return self.base.viterbi(unary, overwrite)
+
+    def message(self, h, edges, forward, semiring, xa=None, xb=None):
+        return self.base.message(h, self.map_edges(edges), forward, semiring, xa, xb)
+
+    def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
+        return self.base.source_given_target(
+            target_state, self.map_edges(edges), forward, num_states, xa, xb
+        )
+
+    def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
+        return self.base.backtrack(h, target_state, self.map_edges(edges), forward, xa, xb)
+
+
+def _unforwarded(wrapper: type) -> list[str]:
+    """Interface methods a wrapper class does not define itself."""
+    names = {*CORE_METHODS, *(m for ms in CAPABILITY_METHODS.values() for m in ms)}
+    return sorted(n for n in names if n not in wrapper.__dict__)
+
+
+if _unforwarded(FactorWrapper):  # pragma: no cover - fails at import, by design
+    raise TypeError(f"FactorWrapper does not forward {_unforwarded(FactorWrapper)}")
 
 
 def _as_slice(edges: EdgeIndex) -> EdgeIndex:
@@ -187,19 +431,22 @@ class TableFactor(PairwiseFactor):
             log_table = log_table.unsqueeze(0)
         self.table = log_table  # (B or 1, E or 1, K, K)
         self.num_edges = self.table.shape[1] if self.table.shape[1] > 1 else None
+        self.num_states = self.table.shape[-1]
         self._finite = finite
         self.upper_bound = upper_bound
         self.workspace = workspace
+        if upper_bound is not None:
+            self.capabilities = frozenset({Capability.BOUNDED})
 
-    #: below this many states the plain log-sum-exp message is as fast as the matmul one
-    MATMUL_MIN_STATES = 32
+    def log_potential_bound(self) -> float | None:
+        return self.upper_bound
 
     def message(self, h, edges, forward, semiring, xa=None, xb=None):
         # Sum-product messages through a large dense table are a batched mat-vec in linear
         # space: exp(T - max) is computed once per direction and reused by every call
         # (tree BP asks each edge twice, loopy BP once per sweep), instead of a fresh
         # log-sum-exp over (B, E, K, K) each time.
-        if type(semiring) is LogSemiring and self.table.shape[-1] >= self.MATMUL_MIN_STATES:
+        if type(semiring) is LogSemiring and self.table.shape[-1] >= MATMUL_MIN_STATES:
             return self._matmul_message(h, edges, forward)
         return super().message(h, edges, forward, semiring, xa, xb)
 
@@ -232,10 +479,9 @@ class TableFactor(PairwiseFactor):
             forbidden = None if self._finite else torch.isneginf(t)
             if self.upper_bound is not None:
                 bound = float(self.upper_bound)
-                # A bound in [0, 60] needs no shift (one pass fewer over the table): the floor
-                # bound - 87 keeps exp on its fast path, and entries <= e^60 leave float32
-                # room for sums over up to 1e12 states.
-                shift = 0.0 if 0.0 <= bound <= 60.0 else bound
+                # A bound in [0, UNSHIFTED_BOUND_MAX] needs no shift (one pass fewer over
+                # the table; see pgm.tuning).
+                shift = 0.0 if 0.0 <= bound <= UNSHIFTED_BOUND_MAX else bound
                 peak = shift
                 torch.clamp(t, min=bound + EXP_FLOOR, out=scaled)
                 if shift:
@@ -315,6 +561,8 @@ class MonotoneFactor(PairwiseFactor):
         step_log_potential: optional ``(S + 1,)`` log-potential of each step size 0..S (e.g.
             a penalty for leaving the expected slope); needs a finite ``max_step``.
     """
+
+    capabilities = frozenset({Capability.STRUCTURED, Capability.FUSED_VITERBI})
 
     def __init__(self, max_step: int | None, step_log_potential: Tensor | None = None):
         if max_step is not None:
@@ -460,6 +708,8 @@ class BandedMonotoneFactor(PairwiseFactor):
             slope prior), as :class:`MonotoneFactor`'s.
     """
 
+    capabilities = frozenset({Capability.STRUCTURED, Capability.FUSED_VITERBI})
+
     def __init__(self, max_step: int, offsets: Tensor, step_log_potential: Tensor | None = None):
         if isinstance(max_step, bool) or not isinstance(max_step, int) or max_step < 1:
             raise ValueError(f"max_step (S) must be an int >= 1, got {max_step!r}")
@@ -549,7 +799,9 @@ class BandedMonotoneFactor(PairwiseFactor):
         b, e, w = h.shape
         src, valid = self._gather_index(edges, w, forward)
         vals = h.unsqueeze(2).expand(b, e, w, w).gather(-1, src.unsqueeze(0).expand(b, -1, -1, -1))
-        vals = vals + self.step_log_potential.to(vals.dtype)  # the last axis is the step
+        # the last axis is the step: its potential enters through the semiring's product
+        steps = semiring.from_log(self.step_log_potential.to(vals.dtype))
+        vals = semiring.mul(vals, steps)
         vals = torch.where(valid, vals, torch.full_like(vals, semiring.zero))
         return semiring.sum(vals, dim=-1)
 

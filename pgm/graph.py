@@ -23,9 +23,9 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from pgm.factors import PairwiseFactor
+from pgm.factors import Capability, PairwiseFactor
 
-__all__ = ["FactorGraph", "GraphError", "NotATreeError", "TreeSchedule"]
+__all__ = ["FactorGraph", "GraphError", "NotATreeError", "TreeSchedule", "pairwise_groups"]
 
 
 class GraphError(ValueError):
@@ -74,6 +74,45 @@ def _check_log_potential(name: str, x: Tensor) -> None:
         raise GraphError(f"{name} contains +inf (log-potentials must be finite or -inf)")
 
 
+def pairwise_groups(
+    pairwise: Sequence[tuple[Tensor, PairwiseFactor]], num_nodes: int
+) -> list[PairwiseGroup]:
+    """Check the wiring of pairwise factor groups over ``num_nodes`` nodes once: each item an
+    ``(edges (E, 2) integer, factor)`` pair, edges inside ``[0, V)`` without self-loops, and a
+    factor with per-edge parameters for exactly its E edges.
+
+    Raises:
+        GraphError: naming the group, with the expected and the actual.
+    """
+    groups = []
+    for gi, item in enumerate(pairwise):
+        if not (isinstance(item, tuple | list) and len(item) == 2):
+            raise GraphError(f"pairwise[{gi}] must be a pair (edges, factor); got {item!r}")
+        edges, factor = item
+        edges = torch.as_tensor(edges)
+        if edges.dim() != 2 or edges.shape[1] != 2 or edges.dtype.is_floating_point:
+            raise GraphError(
+                f"pairwise[{gi}] edges must be an integer tensor of shape (E, 2); "
+                f"got {tuple(edges.shape)} {edges.dtype}"
+            )
+        edges = edges.long()
+        if edges.numel() and (edges.min() < 0 or edges.max() >= num_nodes):
+            raise GraphError(f"pairwise[{gi}] edges reference nodes outside [0, {num_nodes})")
+        if (edges[:, 0] == edges[:, 1]).any():
+            raise GraphError(f"pairwise[{gi}] has a self-loop edge (a == b)")
+        if not isinstance(factor, PairwiseFactor):
+            raise GraphError(
+                f"pairwise[{gi}] factor must be a PairwiseFactor; got {type(factor).__name__}"
+            )
+        if factor.num_edges is not None and factor.num_edges != edges.shape[0]:
+            raise GraphError(
+                f"pairwise[{gi}]: factor {type(factor).__name__} has parameters for "
+                f"{factor.num_edges} edges but {edges.shape[0]} edges were given"
+            )
+        groups.append(PairwiseGroup(edges, factor))
+    return groups
+
+
 class FactorGraph:
     """A pairwise factor graph, batched over ``B`` problems that share its wiring.
 
@@ -83,6 +122,8 @@ class FactorGraph:
             oriented node pairs ``(a, b)`` matching the factor's ``log_potential[a, b]``.
         log_measure: ``(B, V, K)`` log-measure of each support point (default 0).
         values: ``(B, V, K, D)`` support values (particles), or ``None`` for discrete nodes.
+        schedule: the :func:`tree_schedule` of these very edges, when compiled already
+            (particle BP builds a graph per iteration over the same wiring).
 
     Raises:
         GraphError: with the expected and actual shapes, for out-of-range or self-loop edges,
@@ -95,6 +136,7 @@ class FactorGraph:
         pairwise: Sequence[tuple[Tensor, PairwiseFactor]] = (),
         log_measure: Tensor | None = None,
         values: Tensor | None = None,
+        schedule: TreeSchedule | None = None,
     ):
         if not isinstance(unary, Tensor):
             raise GraphError(f"unary must be a torch.Tensor, got {type(unary).__name__}")
@@ -121,32 +163,23 @@ class FactorGraph:
         if values is not None and (values.dim() != 4 or values.shape[1:3] != (v, k)):
             raise GraphError(f"values must have shape (B, {v}, {k}, D); got {tuple(values.shape)}")
         self.values = values
-        self.groups: list[PairwiseGroup] = []
-        for gi, item in enumerate(pairwise):
-            if not (isinstance(item, tuple | list) and len(item) == 2):
-                raise GraphError(f"pairwise[{gi}] must be a pair (edges, factor); got {item!r}")
-            edges, factor = item
-            edges = torch.as_tensor(edges)
-            if edges.dim() != 2 or edges.shape[1] != 2 or edges.dtype.is_floating_point:
+        self.groups = pairwise_groups(pairwise, v)
+        if schedule is not None:
+            self.__dict__["tree_schedule"] = schedule
+        for gi, group in enumerate(self.groups):
+            if group.factor.num_states not in (None, k):
                 raise GraphError(
-                    f"pairwise[{gi}] edges must be an integer tensor of shape (E, 2); "
-                    f"got {tuple(edges.shape)} {edges.dtype}"
+                    f"pairwise[{gi}]: {type(group.factor).__name__} has "
+                    f"{group.factor.num_states} states per node but the graph has {k}"
                 )
-            edges = edges.long()
-            if edges.numel() and (edges.min() < 0 or edges.max() >= v):
-                raise GraphError(f"pairwise[{gi}] edges reference nodes outside [0, {v})")
-            if (edges[:, 0] == edges[:, 1]).any():
-                raise GraphError(f"pairwise[{gi}] has a self-loop edge (a == b)")
-            if not isinstance(factor, PairwiseFactor):
-                raise GraphError(
-                    f"pairwise[{gi}] factor must be a PairwiseFactor; got {type(factor).__name__}"
-                )
-            if factor.num_edges is not None and factor.num_edges != edges.shape[0]:
-                raise GraphError(
-                    f"pairwise[{gi}]: factor {type(factor).__name__} has parameters for "
-                    f"{factor.num_edges} edges but {edges.shape[0]} edges were given"
-                )
-            self.groups.append(PairwiseGroup(edges, factor))
+        if values is None:
+            for gi, group in enumerate(self.groups):
+                if Capability.READS_VALUES in group.factor.capabilities:
+                    raise GraphError(
+                        f"pairwise[{gi}]: factor {type(group.factor).__name__} reads support "
+                        f"values (capability '{Capability.READS_VALUES.value}') but the graph "
+                        "has no values: pass values (B, V, K, D)"
+                    )
 
     # -- sizes -----------------------------------------------------------------------------
     @property
@@ -178,100 +211,115 @@ class FactorGraph:
     @cached_property
     def all_edges(self) -> tuple[Tensor, Tensor, Tensor]:
         """Concatenated edges: ``(E_tot, 2)`` nodes, ``(E_tot,)`` group id, ``(E_tot,)`` local id."""
-        if not self.groups:
-            empty = torch.zeros(0, dtype=torch.long)
-            return torch.zeros(0, 2, dtype=torch.long), empty, empty
-        edges = torch.cat([g.edges for g in self.groups])
-        gid = torch.cat([torch.full((len(g.edges),), i) for i, g in enumerate(self.groups)])
-        lid = torch.cat([torch.arange(len(g.edges)) for g in self.groups])
-        return edges, gid, lid
+        return concatenated_edges(self.groups)
 
     @cached_property
     def tree_schedule(self) -> TreeSchedule:
-        """Root every connected component at its smallest node and order nodes by depth.
+        """Root every connected component at its smallest node and order nodes by depth
+        (:func:`tree_schedule`; given to the constructor when compiled already).
 
         Raises:
             NotATreeError: if the edges contain a cycle (or a repeated edge).
         """
-        v = self.num_nodes
-        edges, gid, lid = self.all_edges
-        # Union-find: an edge joining two nodes already connected closes a cycle.
-        parent_uf = list(range(v))
+        return tree_schedule(self.groups, self.num_nodes)
 
-        def find(x: int) -> int:
-            while parent_uf[x] != x:
-                parent_uf[x] = parent_uf[parent_uf[x]]
-                x = parent_uf[x]
-            return x
 
-        adjacency: list[list[tuple[int, int]]] = [[] for _ in range(v)]
-        for e, (a, b) in enumerate(edges.tolist()):
-            ra, rb = find(a), find(b)
-            if ra == rb:
-                raise NotATreeError(
-                    f"the graph is not a tree or forest: edge ({a}, {b}) closes a cycle; "
-                    "use pgm.loopy_bp for graphs with cycles"
-                )
-            parent_uf[ra] = rb
-            adjacency[a].append((b, e))
-            adjacency[b].append((a, e))
+def concatenated_edges(groups: Sequence[PairwiseGroup]) -> tuple[Tensor, Tensor, Tensor]:
+    """All groups' edges: ``(E_tot, 2)`` nodes, ``(E_tot,)`` group id, ``(E_tot,)`` local id."""
+    if not groups:
+        empty = torch.zeros(0, dtype=torch.long)
+        return torch.zeros(0, 2, dtype=torch.long), empty, empty
+    edges = torch.cat([g.edges for g in groups])
+    gid = torch.cat([torch.full((len(g.edges),), i) for i, g in enumerate(groups)])
+    lid = torch.cat([torch.arange(len(g.edges)) for g in groups])
+    return edges, gid, lid
 
-        depth = [-1] * v
-        par = [-1] * v
-        par_edge = [-1] * v
-        roots: list[int] = []
-        levels: list[list[int]] = []
-        for r in range(v):
-            if depth[r] >= 0:
-                continue
-            roots.append(r)
-            depth[r] = 0
-            frontier = [r]
-            d = 0
-            while frontier:
-                if len(levels) <= d:
-                    levels.append([])
-                levels[d].extend(frontier)
-                nxt = []
-                for node in frontier:
-                    for nb, e in adjacency[node]:
-                        if depth[nb] < 0:
-                            depth[nb] = d + 1
-                            par[nb] = node
-                            par_edge[nb] = e
-                            nxt.append(nb)
-                frontier = nxt
-                d += 1
 
-        kids: list[list[int]] = [[] for _ in range(v)]
-        for node in range(v):
-            if par[node] >= 0:
-                kids[par[node]].append(node)
-        width = max(1, max(len(c) for c in kids))
-        children = torch.full((v, width), v, dtype=torch.long)
-        slot = [0] * v
-        for p, cs in enumerate(kids):
-            for s, c in enumerate(cs):
-                children[p, s] = c
-                slot[c] = s
+def tree_schedule(groups: Sequence[PairwiseGroup], num_nodes: int) -> TreeSchedule:
+    """Root every connected component at its smallest node and order nodes by depth: the
+    wiring of tree BP, which depends on the edges alone (compile it once for graphs that
+    share them).
 
-        level_tensors = [torch.tensor(lv, dtype=torch.long) for lv in levels]
-        ops: list[list[LevelOp]] = [[]]
-        for d in range(1, len(levels)):
-            row_of = {node: i for i, node in enumerate(levels[d - 1])}
-            buckets: dict[tuple[int, bool], list[tuple[int, int, int, int, int]]] = {}
-            for c in levels[d]:
-                e = par_edge[c]
-                g = int(gid[e])
-                child_is_a = int(edges[e, 0]) == c
-                buckets.setdefault((g, child_is_a), []).append(
-                    (int(lid[e]), c, par[c], row_of[par[c]], slot[c])
-                )
-            level_ops = []
-            for (g, child_is_a), rows in sorted(buckets.items()):
-                cols = torch.tensor(rows, dtype=torch.long).T
-                level_ops.append(
-                    LevelOp(g, cols[0], child_is_a, cols[1], cols[2], cols[3], cols[4])
-                )
-            ops.append(level_ops)
-        return TreeSchedule(torch.tensor(roots, dtype=torch.long), level_tensors, children, ops)
+    Raises:
+        NotATreeError: if the edges contain a cycle (or a repeated edge).
+    """
+    v = num_nodes
+    edges, gid, lid = concatenated_edges(groups)
+    # Union-find: an edge joining two nodes already connected closes a cycle.
+    parent_uf = list(range(v))
+
+    def find(x: int) -> int:
+        while parent_uf[x] != x:
+            parent_uf[x] = parent_uf[parent_uf[x]]
+            x = parent_uf[x]
+        return x
+
+    adjacency: list[list[tuple[int, int]]] = [[] for _ in range(v)]
+    for e, (a, b) in enumerate(edges.tolist()):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            raise NotATreeError(
+                f"the graph is not a tree or forest: edge ({a}, {b}) closes a cycle; "
+                "use pgm.loopy_bp for graphs with cycles"
+            )
+        parent_uf[ra] = rb
+        adjacency[a].append((b, e))
+        adjacency[b].append((a, e))
+
+    depth = [-1] * v
+    par = [-1] * v
+    par_edge = [-1] * v
+    roots: list[int] = []
+    levels: list[list[int]] = []
+    for r in range(v):
+        if depth[r] >= 0:
+            continue
+        roots.append(r)
+        depth[r] = 0
+        frontier = [r]
+        d = 0
+        while frontier:
+            if len(levels) <= d:
+                levels.append([])
+            levels[d].extend(frontier)
+            nxt = []
+            for node in frontier:
+                for nb, e in adjacency[node]:
+                    if depth[nb] < 0:
+                        depth[nb] = d + 1
+                        par[nb] = node
+                        par_edge[nb] = e
+                        nxt.append(nb)
+            frontier = nxt
+            d += 1
+
+    kids: list[list[int]] = [[] for _ in range(v)]
+    for node in range(v):
+        if par[node] >= 0:
+            kids[par[node]].append(node)
+    width = max(1, max(len(c) for c in kids))
+    children = torch.full((v, width), v, dtype=torch.long)
+    slot = [0] * v
+    for p, cs in enumerate(kids):
+        for s, c in enumerate(cs):
+            children[p, s] = c
+            slot[c] = s
+
+    level_tensors = [torch.tensor(lv, dtype=torch.long) for lv in levels]
+    ops: list[list[LevelOp]] = [[]]
+    for d in range(1, len(levels)):
+        row_of = {node: i for i, node in enumerate(levels[d - 1])}
+        buckets: dict[tuple[int, bool], list[tuple[int, int, int, int, int]]] = {}
+        for c in levels[d]:
+            e = par_edge[c]
+            g = int(gid[e])
+            child_is_a = int(edges[e, 0]) == c
+            buckets.setdefault((g, child_is_a), []).append(
+                (int(lid[e]), c, par[c], row_of[par[c]], slot[c])
+            )
+        level_ops = []
+        for (g, child_is_a), rows in sorted(buckets.items()):
+            cols = torch.tensor(rows, dtype=torch.long).T
+            level_ops.append(LevelOp(g, cols[0], child_is_a, cols[1], cols[2], cols[3], cols[4]))
+        ops.append(level_ops)
+    return TreeSchedule(torch.tensor(roots, dtype=torch.long), level_tensors, children, ops)

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from pgm.rotations import qexp
+from pgm.tuning import EXP_FLOOR, budget_for
 
 __all__ = [
     "ROTATION_KERNELS",
@@ -357,7 +358,7 @@ def se3_kernel_mixture(
     # memory (2.4x faster than whole (N, K, M) passes at K = M = 150 on 2 cores); elsewhere
     # the blocks only bound memory (256 MB).
     n, k, m = left.shape[0], left.shape[-1], right.shape[-1]
-    block_bytes = (4 << 20) if left.device.type == "cpu" else (256 << 20)
+    block_bytes = budget_for(left.device).mixture_block_bytes
     rows = max(1, block_bytes // (k * m * left.element_size()))
     s = left.new_empty(n, k)
     buffer = left.new_empty(min(rows, n), k, m)
@@ -366,7 +367,7 @@ def se3_kernel_mixture(
         table = torch.bmm(
             left[block].transpose(-1, -2), right[block], out=buffer[: block.stop - start]
         )
-        torch.sum(table.clamp_(min=-87.0).exp_(), -1, out=s[block])
+        torch.sum(table.clamp_(min=EXP_FLOOR).exp_(), -1, out=s[block])
     out = torch.log(s)
     w_peak = w_peak.expand(*lead, 1).reshape(-1, 1)
     return (out + w_peak).reshape(*lead, out.shape[-1])

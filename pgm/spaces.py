@@ -58,6 +58,8 @@ class StateSpace:
     tangent_dim: int
     #: a discrete space's support is fixed: its nodes are never resampled
     discrete: bool = False
+    #: a discrete space's number of states (``None`` for continuous spaces)
+    num_states: int | None = None
 
     def perturb(self, x: Tensor, scale, generator: torch.Generator | None = None) -> Tensor:
         """Move each point by the perturbation kernel. Shapes: (..., D) -> (..., D)."""

@@ -15,54 +15,46 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from pgm.factors import EdgeIndex, PairwiseFactor
+from pgm.factors import Capability, EdgeIndex, FactorWrapper, PairwiseFactor
 
 __all__ = ["SpatioTemporalTemplate", "TiledFactor"]
 
 
-class TiledFactor(PairwiseFactor):
+class TiledFactor(FactorWrapper):
     """Reuse a factor with parameters for ``E`` edges on ``tiles`` copies of those edges.
 
     Edge ``i`` of the tiled group uses the base factor's edge ``i % E``. Every method of the
-    base (message kernels, samplers, densities, annealing) is delegated with the edges mapped.
+    interface is forwarded with the edges mapped (:class:`~pgm.factors.FactorWrapper`), so the
+    tiled factor declares what its base declares -- except a fused Viterbi sweep over more
+    than one tile (the base's kernel covers one copy of its edges; the generic path is
+    exact).
     """
 
     def __init__(self, base: PairwiseFactor, tiles: int):
+        super().__init__(base)
         if base.num_edges is None:
             raise ValueError("TiledFactor needs a factor with per-edge parameters (num_edges set)")
-        if not isinstance(tiles, int) or tiles < 1:
+        if isinstance(tiles, bool) or not isinstance(tiles, int) or tiles < 1:
             raise ValueError(f"tiles must be an int >= 1; got {tiles!r}")
-        self.base, self.tiles = base, tiles
+        self.tiles = tiles
         self.period = base.num_edges
         self.num_edges = base.num_edges * tiles
-        self.can_sample = getattr(base, "can_sample", False)
 
-    def _map(self, edges: EdgeIndex) -> Tensor:
+    def map_edges(self, edges: EdgeIndex) -> Tensor:
+        if isinstance(edges, Tensor):
+            if edges.numel() and (edges.min() < 0 or edges.max() >= self.num_edges):
+                raise IndexError(f"edge index outside [0, {self.num_edges})")
+            return edges % self.period
         return torch.arange(self.num_edges)[edges] % self.period
 
-    def set_iteration(self, iteration: int) -> None:
-        if hasattr(self.base, "set_iteration"):
-            self.base.set_iteration(iteration)
+    def drops(self) -> frozenset[Capability]:
+        return frozenset({Capability.FUSED_VITERBI}) if self.tiles > 1 else frozenset()
 
-    def log_potential(self, edges, xa, xb, num_states):
-        return self.base.log_potential(self._map(edges), xa, xb, num_states)
+    def rewrap(self, base: PairwiseFactor) -> TiledFactor:
+        return TiledFactor(base, self.tiles)
 
-    def message(self, h, edges, forward, semiring, xa=None, xb=None):
-        return self.base.message(h, self._map(edges), forward, semiring, xa, xb)
-
-    def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
-        return self.base.source_given_target(
-            target_state, self._map(edges), forward, num_states, xa, xb
-        )
-
-    def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
-        return self.base.backtrack(h, target_state, self._map(edges), forward, xa, xb)
-
-    def sample_target(self, x_source, edges, forward, generator):
-        return self.base.sample_target(x_source, self._map(edges), forward, generator)
-
-    def log_target_density(self, x_target, x_source, edges, forward):
-        return self.base.log_target_density(x_target, x_source, self._map(edges), forward)
+    def __repr__(self) -> str:
+        return f"TiledFactor({type(self.base).__name__}, tiles={self.tiles})"
 
 
 @dataclass

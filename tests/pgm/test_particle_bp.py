@@ -7,6 +7,7 @@ import torch
 
 from pgm import FactorGraph, LogSemiring, MaxSemiring, TableFactor, tree_inference
 from pgm.continuous import ContinuousPairwise, GaussianUnary, LinearGaussian, UnaryFactor
+from pgm.factors import Capability
 from pgm.particle_bp import ParticleGraph, ParticleResult, particle_bp
 from pgm.schedules import Geometric
 from pgm.spaces import Discrete, Euclidean
@@ -197,6 +198,8 @@ def test_annealing_satisfies_the_connection_constraint():
 
 class StateMeans(ContinuousPairwise):
     """psi(c, x) = N(x; mu[c], s^2): a discrete node c (a) choosing the mean of x (b)."""
+
+    capabilities = ContinuousPairwise.capabilities | {Capability.SAMPLABLE}
 
     def __init__(self, mu, s):
         super().__init__()
