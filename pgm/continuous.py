@@ -22,7 +22,13 @@ import math
 import torch
 from torch import Tensor
 
-from pgm.factors import AnnealingStep, Capability, EdgeIndex, PairwiseFactor
+from pgm.factors import (
+    AnnealingStep,
+    Capability,
+    EdgeIndex,
+    MissingCapabilityError,
+    PairwiseFactor,
+)
 from pgm.kernels import (
     ROTATION_KERNELS,
     rotation_log_kernel_from_dot,
@@ -202,6 +208,8 @@ class RigidConnection(ContinuousPairwise):
         self.pos_std, self.rot_std = float(pos_std), rot_std
         if rot_std is None:  # an improper conditional in the rotation: nothing to sample
             self.capabilities = type(self).capabilities - {Capability.SAMPLABLE}
+        elif rotation != "bingham":  # only the Bingham table is one product into a buffer
+            self.capabilities = type(self).capabilities - {Capability.BUFFERED}
 
     def _param(self, t: Tensor, edges: EdgeIndex, like: Tensor) -> Tensor:
         t = t.to(like)
@@ -261,6 +269,8 @@ class RigidConnection(ContinuousPairwise):
         return se3_kernel_mixture(*target, *source, log_w_source, *self._spreads(), self.rotation)
 
     def sample_target(self, x_source, edges, forward, generator):
+        if Capability.SAMPLABLE not in self.capabilities:
+            raise MissingCapabilityError(self, Capability.SAMPLABLE)
         s_p, s_r = self.pos_std * self.anneal, self.rot_std * self.anneal
         lead = x_source.shape[:-1]
         rel = self._param(self.rel_rot, edges, x_source).expand(*lead, 4)

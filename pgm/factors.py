@@ -300,6 +300,8 @@ class FactorWrapper(PairwiseFactor):
         if not isinstance(base, PairwiseFactor):
             raise TypeError(f"base must be a PairwiseFactor; got {type(base).__name__}")
         self.base = base
+        # declared sizes are forwarded too (a subclass that changes them sets its own)
+        self.num_edges, self.num_states = base.num_edges, base.num_states
 
     def map_edges(self, edges: EdgeIndex) -> EdgeIndex:
         """This wrapper's edges -> the base's (default: the same)."""
@@ -576,6 +578,8 @@ class MonotoneFactor(PairwiseFactor):
             _check_step_log_potential(step_log_potential, max_step)
         self.max_step = max_step
         self.step_log_potential = step_log_potential
+        if max_step is None or step_log_potential is not None:  # no fused sweep for these
+            self.capabilities = frozenset({Capability.STRUCTURED})
 
     def log_potential(self, edges, xa, xb, num_states):
         i = torch.arange(num_states)
