@@ -11,6 +11,13 @@ The extension surface is deliberately small (compare PyTorch Geometric's ``Messa
 * :meth:`PairwiseFactor.backtrack` -- override to decode MAP assignments in O(S) rather than
   O(K) per edge.
 
+Every optional ability beyond the table is a :class:`Capability` that a factor declares in
+``capabilities`` (one registry, :data:`CAPABILITY_METHODS`, lists their methods; each has a
+default here), so engines call methods instead of probing for them, graphs check at
+construction that each factor can do what its place needs, and :class:`FactorWrapper`
+forwards all of them. Structured kernels compute exactly what their dense table computes, in
+every semiring (``tests/pgm/test_factor_conformance.py``).
+
 Shapes: ``B`` batch, ``E`` edges of this factor (or a subset of them), ``K`` support size
 (states or particles), ``D`` state dimension. Supports are passed as values ``(B, E, K, D)``
 or ``None`` for a discrete support (the state index is the value).
