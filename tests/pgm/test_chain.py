@@ -16,6 +16,7 @@ from pgm import (
     MonotoneFactor,
     PairwiseFactor,
     TableFactor,
+    TemperedSemiring,
     chain_inference,
     chain_map,
     tree_map,
@@ -150,9 +151,10 @@ def test_banded_factor_equals_dense_table():
 
 
 def test_banded_factor_with_step_potentials_equals_dense_table_and_monotone_factor():
-    """A slope prior on the band: the dense table of the same factor (all semirings), the
-    fused kernel, and -- with windows covering the whole axis -- MonotoneFactor with the same
-    step potentials on the full problem, all agree."""
+    """A slope prior on the band: the dense table of the same factor (every semiring,
+    counting included: a step potential counts once, it is no weight), the fused kernel, and
+    -- with windows covering the whole axis -- MonotoneFactor with the same step potentials
+    on the full problem, all agree."""
     torch.manual_seed(6)
     n, w, s = 20, 7, 3
     steps = torch.tensor([-0.5, 0.0, -0.3, -2.0], dtype=torch.float64)
@@ -160,10 +162,13 @@ def test_banded_factor_with_step_potentials_equals_dense_table_and_monotone_fact
     factor = BandedMonotoneFactor(s, offsets, steps)
     dense = TableFactor(factor.log_potential(slice(0, n - 1), None, None, w).double())
     unary = torch.randn(2, n, w, dtype=torch.float64)
-    for semiring in [LogSemiring(), MaxSemiring()]:
+    for semiring in [LogSemiring(), MaxSemiring(), TemperedSemiring(0.3), CountingSemiring()]:
         a = chain_inference(unary, factor, semiring)
         b = chain_inference(unary, dense, semiring)
         torch.testing.assert_close(a.log_partition, b.log_partition)
+        torch.testing.assert_close(a.log_marginals, b.log_marginals)
+    count = chain_inference(unary, factor, CountingSemiring()).log_partition
+    assert (count == count.round()).all() and (count > 0).all()  # a count of paths
     fused, generic = chain_map(unary, factor), chain_map(unary, factor, use_fused=False)
     assert torch.equal(fused.assignment, chain_map(unary, dense).assignment)
     assert torch.equal(fused.assignment, generic.assignment)
