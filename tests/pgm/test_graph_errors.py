@@ -101,7 +101,7 @@ def test_particle_graph_takes_a_state_table_between_discrete_nodes_of_its_size()
 
 
 def test_mixture_proposal_needs_samplers_into_continuous_nodes():
-    from pgm import Euclidean, ParticleGraph, RigidConnection, SE3, particle_bp
+    from pgm import SE3, Euclidean, ParticleGraph, RigidConnection, particle_bp
 
     rot_free = RigidConnection(torch.zeros(3), torch.zeros(3), pos_std=0.1)  # cannot sample
     edges = torch.tensor([[0, 1]])
