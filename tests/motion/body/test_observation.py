@@ -161,7 +161,7 @@ def test_edge_cue_equals_the_mean_edge_distance_along_the_outline(scene):
     """Occlusion off, one part at a time: the outline term equals the length-weighted mean
     of the truncated squared distance along the exact capsule outline (500 points of
     motion.render.outline_points, an independent parametrisation) within 5 %."""
-    seg, poses, shapes, rig, sil, x, model = scene
+    _, poses, shapes, rig, sil, x, model = scene
     edges = cv2.Canny((sil.numpy() * 255).astype(np.uint8), 50, 150) > 0
     dist = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     dist_t = torch.from_numpy(dist).to(F64)
@@ -264,7 +264,7 @@ def test_segment_distance_against_dense_sampling():
 
 
 def test_non_penetration_penalises_overlap_with_other_parts_only(scene):
-    seg, poses, shapes, rig, sil, x, model = scene
+    poses, model = scene[1], scene[6]
     allowed = torch.eye(15, dtype=torch.bool)
     thigh_l, thigh_r = model.part_names.index("thigh_l"), model.part_names.index("thigh_r")
     allowed[thigh_l, model.part_names.index("pelvis")] = True
