@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_alignment.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_particle_bp.py
+	$(BIN)/python benchmarks/bench_observation.py
 
 clean:
 	rm -rf $(VENV)
