@@ -63,25 +63,28 @@ class ContinuousPairwise(PairwiseFactor):
 
     capabilities = frozenset({Capability.READS_VALUES, Capability.ANNEALED})
     schedule: Schedule = Constant()
-    _multiplier: float | None = None
+    _step: AnnealingStep = AnnealingStep()
 
     def __init__(self, schedule: Schedule | None = None):
         self.schedule = schedule or Constant()
 
     def annealed(self, step: AnnealingStep) -> ContinuousPairwise:
-        """A shallow copy whose spreads are multiplied by ``schedule(step.iteration)``
-        (``self`` when that is the multiplier already)."""
-        multiplier = self.schedule(step.iteration)
-        if multiplier == self.anneal:
+        """A shallow copy at ``step`` (``self`` when its spreads would not change)."""
+        if self.multipliers(step.iteration) == self.multipliers(self._step.iteration):
             return self
         out = copy.copy(self)
-        out._multiplier = multiplier
+        out._step = step
         return out
+
+    def multipliers(self, iteration: int) -> tuple[float, ...]:
+        """Every spread multiplier this factor reads at an iteration (a subclass with more
+        than one schedule lists them all)."""
+        return (self.schedule(iteration),)
 
     @property
     def anneal(self) -> float:
         """Spread multiplier of this value: ``schedule(iteration)`` at its annealing step."""
-        return self.schedule(0) if self._multiplier is None else self._multiplier
+        return self.schedule(self._step.iteration)
 
 
 _SAMPLABLE = ContinuousPairwise.capabilities | {Capability.SAMPLABLE}
@@ -165,7 +168,11 @@ class RigidConnection(ContinuousPairwise):
         pos_std: metres. rot_std: radians (``None``: rotation unconstrained -- then this
             factor cannot sample, as the conditional is improper).
         rel_rot: ``(4,)`` or ``(E, 4)`` mean relative rotation ``R_a^T R_b`` (default identity).
+        schedule: multiplier of both spreads per iteration (annealing).
         rotation: ``"bingham"`` or ``"gaussian"``, the rotation kernel's family.
+        rotation_schedule: multiplier of the rotation spread alone, replacing ``schedule``
+            for it (e.g. ``Constant()``: a broad rotation prior that does not tighten while
+            the joints' positions anneal, as the proposal's position-only connection).
     """
 
     capabilities = _SAMPLABLE | {Capability.BOUNDED, Capability.BUFFERED}
@@ -179,8 +186,10 @@ class RigidConnection(ContinuousPairwise):
         rel_rot=None,
         schedule=None,
         rotation: str = "bingham",
+        rotation_schedule: Schedule | None = None,
     ):
         super().__init__(schedule)
+        self.rotation_schedule = rotation_schedule
         if rotation not in ROTATION_KERNELS:
             raise ValueError(f"rotation must be one of {ROTATION_KERNELS}; got {rotation!r}")
         self.rotation = rotation
@@ -257,9 +266,14 @@ class RigidConnection(ContinuousPairwise):
             )
         return bound
 
+    def multipliers(self, iteration: int) -> tuple[float, ...]:
+        rotation = self.rotation_schedule or self.schedule
+        return self.schedule(iteration), rotation(iteration)
+
     def _spreads(self) -> tuple[float, float | None]:
-        s_r = None if self.rot_std is None else self.rot_std * self.anneal
-        return self.pos_std * self.anneal, s_r
+        m_p, m_r = self.multipliers(self._step.iteration)
+        s_r = None if self.rot_std is None else self.rot_std * m_r
+        return self.pos_std * m_p, s_r
 
     def log_target_mixture(self, x_target, x_source, log_w_source, edges, forward):
         # The kernel is symmetric in its ends: the mixture over sources is one call.
@@ -271,7 +285,7 @@ class RigidConnection(ContinuousPairwise):
     def sample_target(self, x_source, edges, forward, generator):
         if Capability.SAMPLABLE not in self.capabilities:
             raise MissingCapabilityError(self, Capability.SAMPLABLE)
-        s_p, s_r = self.pos_std * self.anneal, self.rot_std * self.anneal
+        s_p, s_r = self._spreads()
         lead = x_source.shape[:-1]
         rel = self._param(self.rel_rot, edges, x_source).expand(*lead, 4)
         noise = rotation_noise(

@@ -108,7 +108,7 @@ def _steps(s, seed):
     return _rand(s + 1, seed=seed, scale=0.7)
 
 
-def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True):
+def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True, rot_schedule=None):
     schedule = Geometric(1.0, 0.3, 4)
     if not per_edge:
         return RigidConnection(
@@ -117,7 +117,7 @@ def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True):
     off_a = _rand(3, 3, seed=11, scale=0.05).repeat(repeat, 1)
     off_b = _rand(3, 3, seed=12, scale=0.05).repeat(repeat, 1)
     rel_rot = qexp(_rand(3, 3, seed=13, scale=0.2)).repeat(repeat, 1) if rel else None
-    return RigidConnection(off_a, off_b, 0.05, rot_std, rel_rot, schedule, rotation)
+    return RigidConnection(off_a, off_b, 0.05, rot_std, rel_rot, schedule, rotation, rot_schedule)
 
 
 def _float64(build):
@@ -197,6 +197,12 @@ CASES = [
     Case("rigid-no-rotation", _float64(lambda r: _rigid(r, rot_std=None)), "se3", 12),
     Case("rigid-at-origin", _float64(lambda r: _rigid(r, per_edge=False)), "se3", 12),
     Case("rigid-no-relative", _float64(lambda r: _rigid(r, rel=False)), "se3", 12),
+    Case(
+        "rigid-own-rotation-schedule",
+        _float64(lambda r: _rigid(r, rot_std=0.8, rot_schedule=Geometric(1.0, 0.8, 3))),
+        "se3",
+        12,
+    ),
     Case(
         "lookup-gaussian",
         lambda r: LookupGaussian(_rand(6, 2, seed=9), torch.tensor([0.4, 0.6], dtype=F64)),
@@ -414,6 +420,13 @@ def _log_reference(case: Case, draws: torch.Tensor):
     centre = SE3().weighted_mean(draws, uniform)[..., None, 3:].expand(*draws.shape[:-1], 4)
     spread = qangle(draws[..., 3:], centre).square().mean(-1, keepdim=True).sqrt() / math.sqrt(3)
     width = 2 * spread.clamp_min(1e-3)
+    if float(width.max()) > 0.5:
+        # too wide for a Gaussian of rotation vectors (it would wrap past pi): uniform
+        # rotations, density 1 / (8 pi^2) in the same measure (the volume of SO(3))
+        q = torch.nn.functional.normalize(
+            torch.randn(*draws.shape[:-1], 4, generator=g, dtype=F64), dim=-1
+        )
+        return torch.cat([y, q], -1), log_r - math.log(8 * math.pi**2)
     noise = qexp(width.unsqueeze(-1) * torch.randn(*draws.shape[:-1], 3, generator=g, dtype=F64))
     q = pgm.rotations.qmul(noise, centre)
     log_r = log_r + so3_log_kernel(qangle(q, centre), width)
