@@ -3,16 +3,22 @@
 The body model is data (``motion/data/bodyparts/parts.yaml``): 15 tapered capsules, each
 between two semantic landmarks (roles such as ``knee_l``) with two radii in metres. A
 skeleton's joints are mapped to the roles automatically for the common BVH naming
-conventions (``roles.yaml``: CMU/MotionBuilder, Daz/Second Life, 3ds Max, Mixamo), or by a
-spec file with the same keys; what cannot be mapped is reported part by part.
+conventions (``roles.yaml`` lists them and where each was seen), or by a spec file with the
+same keys; what cannot be mapped is reported part by part.
 
-A role is the mean of one or more *points*: joint positions, or End Site positions written
-``NAME.end``. Shapes: ``J`` joints, ``E`` end sites, ``R`` roles, ``P`` parts.
+A role is the mean of one or more *points*: joint positions, End Site positions written
+``NAME.end``, or -- where a skeleton has no joint or End Site for a hand's or a foot's far
+end -- a synthesized end ``NAME.tip``: a fixed offset from joint ``NAME`` (the wrist or the
+ankle) that moves with it like an End Site, announced by a :class:`SynthesizedEndWarning`.
+Shapes: ``J`` joints, ``E`` end sites, ``S`` synthesized ends, ``R`` roles, ``P`` parts.
+Geometry: metres, the BVH rest pose (all rotations zero) for the synthesized offsets.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import re
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -21,13 +27,42 @@ from torch import Tensor
 
 from motion.kinematics import FKResult, Skeleton
 
-__all__ = ["BodyModel", "BodyPartMappingError", "end_site_positions", "load_spec", "map_roles"]
+__all__ = [
+    "FOOT_END_M",
+    "HAND_END_M",
+    "BodyModel",
+    "BodyPartMappingError",
+    "SynthesizedEndWarning",
+    "canonical_name",
+    "end_site_positions",
+    "joint_of_point",
+    "load_spec",
+    "map_roles",
+]
 
 DATA = Path(__file__).resolve().parent / "data" / "bodyparts"
+
+TIP = ".tip"  # suffix of a synthesized end point
+# Synthesized ends, measured on the shared CMU files (rest pose, metres): wrist to the middle
+# finger's base is 0.09 m in the Daz-style files (rHand -> rMid1); ankle to the toe is about
+# 0.12 m forward and 0.03 m down (cgspeed LeftFoot -> LeftToeBase, Daz lFoot's End Site).
+HAND_END_M = 0.09
+FOOT_END_M = (0.12, 0.03)  # (forward, down)
+# end role -> (role whose joint it extends, what it is)
+_FALLBACK_ENDS = {
+    "hand_end_l": ("wrist_l", "hand"),
+    "hand_end_r": ("wrist_r", "hand"),
+    "toe_l": ("ankle_l", "foot"),
+    "toe_r": ("ankle_r", "foot"),
+}
 
 
 class BodyPartMappingError(ValueError):
     """Some body parts could not be mapped to the skeleton's joints."""
+
+
+class SynthesizedEndWarning(UserWarning):
+    """A hand or foot end was not among the joints; a default-length end was synthesized."""
 
 
 def _read_yaml(path: Path) -> dict:
@@ -55,38 +90,97 @@ def _parts() -> dict[str, dict]:
     return _read_yaml(DATA / "parts.yaml")["parts"]
 
 
+# Rig prefixes that carry no meaning: 3ds Max Biped ("Bip01 ", "Bip001 "), Valve's
+# "ValveBiped.", Mixamo without its colon ("mixamorig", "mixamorig1_"), Character Creator.
+_PREFIX = re.compile(r"^(valvebiped\.)?(bip0*1|mixamorig\d*|ccbase)")
+
+
+def canonical_name(name: str) -> str:
+    """The key joint names are compared by: namespace (``a:``) and rig prefixes dropped,
+    lower case, spaces, underscores and hyphens removed (``"Bip01 L Thigh"`` -> ``"lthigh"``,
+    ``"UpperArm_L"`` -> ``"upperarml"``). A trailing ``.end`` is kept."""
+    base, end = (name[:-4], ".end") if name.lower().endswith(".end") else (name, "")
+    key = re.sub(r"[\s_\-]+", "", base.split(":")[-1].lower())
+    return (_PREFIX.sub("", key) or key) + end
+
+
+def joint_of_point(point: str) -> tuple[str, bool]:
+    """The joint a point moves with, and whether the point is offset from it (an End Site
+    ``NAME.end`` or a synthesized end ``NAME.tip``) rather than the joint itself."""
+    for suffix in (".end", TIP):
+        if point.endswith(suffix):
+            return point[: -len(suffix)], True
+    return point, False
+
+
+def _point_index(joint_names: list[str], end_site_joints: list[str]) -> dict[str, str]:
+    """canonical key -> point name (joints, then ``NAME.end``); the first of a clash wins."""
+    canon: dict[str, str] = {}
+    for n in joint_names:
+        canon.setdefault(canonical_name(n), n)
+    for n in end_site_joints:
+        canon.setdefault(canonical_name(n) + ".end", n + ".end")
+    return canon
+
+
+def _fallback_end(role: str, mapping: dict, end_site_joints: list[str]) -> list[str] | None:
+    """For a missing hand or foot end: the End Site below the wrist/ankle joint, else a
+    synthesized ``NAME.tip`` (with a warning); None when the wrist/ankle is not one joint."""
+    proximal, kind = _FALLBACK_ENDS[role]
+    base = mapping.get(proximal)
+    if base is None or len(base) != 1 or joint_of_point(base[0])[1]:
+        return None
+    joint = base[0]
+    if joint in end_site_joints:
+        return [joint + ".end"]
+    if kind == "hand":
+        how = f"{HAND_END_M} m beyond {joint!r} along the forearm"
+    else:
+        how = f"{FOOT_END_M[0]} m ahead of and {FOOT_END_M[1]} m below {joint!r}"
+    warnings.warn(
+        f"{role}: no joint or End Site for the {kind}'s end; using a synthesized point {how} "
+        f"(name one in a spec to choose it)",
+        SynthesizedEndWarning,
+        stacklevel=4,
+    )
+    return [joint + TIP]
+
+
 def map_roles(
     joint_names: list[str], end_site_joints: list[str], spec: dict | str | Path | None = None
 ) -> dict[str, list[str]]:
     """Map every role the parts need to point names of this skeleton.
 
+    Roles are resolved part by part, proximal end first; an automatic candidate for a part's
+    distal end is skipped when it is the same point as the proximal end (SMPL's ``L_Hand`` is
+    a hand end, Daz's ``lHand`` a wrist). A hand or foot end that no candidate matches falls
+    back to the End Site of the wrist/ankle joint, then to a synthesized ``NAME.tip`` with a
+    :class:`SynthesizedEndWarning` (see :data:`HAND_END_M`, :data:`FOOT_END_M`).
+
     Args:
-        joint_names: the skeleton's joints (a ``prefix:`` such as Mixamo's is ignored).
+        joint_names: the skeleton's joints (compared by :func:`canonical_name`).
         end_site_joints: joints that have an End Site (their ``.end`` points exist).
         spec: explicit mapping (dict or spec file) used before the automatic table.
 
     Returns:
-        role -> list of point names as they appear in the skeleton (``NAME`` or ``NAME.end``).
+        role -> list of point names as they appear in the skeleton (``NAME``, ``NAME.end`` or
+        ``NAME.tip``).
 
     Raises:
         BodyPartMappingError: naming each part that cannot be mapped and its missing roles.
     """
     explicit = load_spec(spec) if isinstance(spec, str | Path) else (spec or {})
     table = _read_yaml(DATA / "roles.yaml")["roles"]
-    canon = {}
-    for n in joint_names:
-        canon[n.split(":")[-1].lower()] = n
-    for n in end_site_joints:
-        canon[n.split(":")[-1].lower() + ".end"] = n + ".end"
+    canon = _point_index(joint_names, end_site_joints)
 
     def resolve(candidate) -> list[str] | None:
         items = [candidate] if isinstance(candidate, str) else list(candidate)
-        found = [canon.get(str(i).lower()) for i in items]
+        found = [canon.get(canonical_name(str(i))) for i in items]
         return None if any(f is None for f in found) else found
 
-    needed = sorted({r for p in _parts().values() for r in (p["from"], p["to"])})
-    mapping: dict[str, list[str]] = {}
-    for role in needed:
+    def assign(role: str, avoid: list[str] | None) -> None:
+        if role in mapping:
+            return
         if role in explicit:
             got = resolve(explicit[role])
             if got is None:
@@ -94,15 +188,25 @@ def map_roles(
                     f"spec maps role {role!r} to {explicit[role]!r}, not found among the joints"
                 )
             mapping[role] = got
-            continue
+            return
         for cand in table.get(role, []):
             got = resolve(cand)
+            if got is not None and got != avoid:
+                mapping[role] = got
+                return
+        if role in _FALLBACK_ENDS:
+            got = _fallback_end(role, mapping, end_site_joints)
             if got is not None:
                 mapping[role] = got
-                break
+
+    parts = _parts()
+    mapping: dict[str, list[str]] = {}
+    for d in parts.values():
+        assign(d["from"], None)
+        assign(d["to"], mapping.get(d["from"]))
     missing = {
         part: [r for r in (d["from"], d["to"]) if r not in mapping]
-        for part, d in _parts().items()
+        for part, d in parts.items()
         if d["from"] not in mapping or d["to"] not in mapping
     }
     if missing:
@@ -111,22 +215,75 @@ def map_roles(
             f"could not map {len(missing)} body parts: {lines}. Joints: {joint_names}. Pass a "
             "spec file mapping these roles to joint names (see motion/data/bodyparts/)."
         )
-    return mapping
+    return dict(sorted(mapping.items()))
 
 
 def end_site_positions(skeleton: Skeleton, fk: FKResult) -> Tensor:
     """Positions of every End Site (in ``skeleton.end_sites`` order). ``(..., E, 3)`` metres."""
-    if not skeleton.end_sites:
+    return _offset_points(fk, skeleton.end_sites)
+
+
+def _offset_points(fk: FKResult, offsets: dict[int, Tensor]) -> Tensor:
+    """``position[j] + rotation[j] @ offset`` for each ``{joint j: (3,) offset}``. ``(..., n, 3)``."""
+    if not offsets:
         return fk.positions[..., :0, :]
-    joints = torch.tensor(list(skeleton.end_sites), dtype=torch.long)
-    offs = torch.stack(list(skeleton.end_sites.values())).to(fk.positions)  # (E, 3)
+    joints = torch.tensor(list(offsets), dtype=torch.long)
+    offs = torch.stack(list(offsets.values())).to(fk.positions)  # (n, 3)
     rot = fk.rotations[..., joints, :, :]
     return fk.positions[..., joints, :] + (rot @ offs.unsqueeze(-1)).squeeze(-1)
 
 
+def _rest_points(skeleton: Skeleton) -> dict[str, Tensor]:
+    """Rest-pose positions (all rotations zero) of joints and End Sites, by point name."""
+    pos: list[Tensor] = []
+    for j, p in enumerate(skeleton.parents.tolist()):
+        pos.append(skeleton.offsets[j] + (pos[p] if p >= 0 else 0))
+    out = {n: pos[j] for j, n in enumerate(skeleton.names)}
+    for j, o in skeleton.end_sites.items():
+        out[skeleton.names[j] + ".end"] = pos[j] + o
+    return out
+
+
+def _unit(v: Tensor, what: str) -> Tensor:
+    n = v.norm()
+    if not n > 1e-9:
+        raise BodyPartMappingError(f"cannot synthesize {what}: zero length at rest")
+    return v / n
+
+
+def _synthesized_offsets(skeleton: Skeleton, mapping: dict[str, list[str]]) -> dict[int, Tensor]:
+    """``{joint: (3,) offset in metres in the joint's frame}`` for every ``NAME.tip`` role.
+
+    At rest every BVH rotation is zero, so a joint's frame is the world's: a hand end lies
+    :data:`HAND_END_M` beyond the wrist along elbow -> wrist; a foot end :data:`FOOT_END_M`
+    ahead (``left x up``, left = hip_l - hip_r, up = ankle -> knee) and below the ankle.
+    """
+    rest = _rest_points(skeleton)
+
+    def role(r: str) -> Tensor:
+        return torch.stack([rest[n] for n in mapping[r]]).mean(0)
+
+    out: dict[int, Tensor] = {}
+    for end, (proximal, kind) in _FALLBACK_ENDS.items():
+        tip = mapping[end][0]
+        if not tip.endswith(TIP):
+            continue
+        side = end[-1]
+        if kind == "hand":
+            along = _unit(role(proximal) - role(f"elbow_{side}"), f"{end} (the forearm)")
+            offset = HAND_END_M * along
+        else:
+            up = _unit(role(f"knee_{side}") - role(proximal), f"{end} (the shin)")
+            left = role("hip_l") - role("hip_r")
+            forward = _unit(torch.linalg.cross(left, up), f"{end} (hips across the shin)")
+            offset = FOOT_END_M[0] * forward - FOOT_END_M[1] * up
+        out[skeleton.index(joint_of_point(tip)[0])] = offset
+    return out
+
+
 @dataclass
 class BodyModel:
-    """Capsule parts over a point set (joints then end sites, or keypoints).
+    """Capsule parts over a point set (joints, end sites, synthesized ends; or keypoints).
 
     Attributes:
         part_names: P names. roles: R role names.
@@ -135,6 +292,8 @@ class BodyModel:
         radii: ``(P, 2)`` metres, proximal and distal radius (the body-size adjustment G
             scales these and the skeleton's offsets).
         mapping: role -> point names used.
+        synthesized: ``{joint: (3,) offset in metres}`` of the synthesized ``NAME.tip``
+            points, in point order after the End Sites (empty for most skeletons).
     """
 
     part_names: list[str]
@@ -143,6 +302,7 @@ class BodyModel:
     part_roles: Tensor
     radii: Tensor
     mapping: dict[str, list[str]]
+    synthesized: dict[int, Tensor] = field(default_factory=dict)
 
     @classmethod
     def from_points(cls, point_names: list[str], mapping: dict[str, list[str]]) -> BodyModel:
@@ -165,11 +325,19 @@ class BodyModel:
 
     @classmethod
     def from_skeleton(cls, skeleton: Skeleton, spec: dict | str | Path | None = None) -> BodyModel:
-        """Map a skeleton's joints (and End Sites) to the body parts."""
+        """Map a skeleton's joints (and End Sites) to the body parts; a missing hand or foot
+        end is synthesized (:func:`map_roles`, :class:`SynthesizedEndWarning`)."""
         end_joints = [skeleton.names[j] for j in skeleton.end_sites]
         mapping = map_roles(skeleton.names, end_joints, spec)
-        points = list(skeleton.names) + [n + ".end" for n in end_joints]
-        return cls.from_points(points, mapping)
+        synthesized = _synthesized_offsets(skeleton, mapping)
+        points = (
+            list(skeleton.names)
+            + [n + ".end" for n in end_joints]
+            + [skeleton.names[j] + TIP for j in synthesized]
+        )
+        model = cls.from_points(points, mapping)
+        model.synthesized = synthesized
+        return model
 
     @classmethod
     def from_keypoints(cls, spec: str | Path = "pose2sim_21") -> BodyModel:
@@ -193,5 +361,13 @@ class BodyModel:
         return self.landmarks(points)[..., self.part_roles, :]
 
     def skeleton_points(self, skeleton: Skeleton, fk: FKResult) -> Tensor:
-        """Joints then End Sites, the point order of :meth:`from_skeleton`. ``(..., N, 3)``."""
-        return torch.cat([fk.positions, end_site_positions(skeleton, fk)], -2)
+        """Joints, End Sites, then synthesized ends: the point order of :meth:`from_skeleton`.
+        ``(..., J + E + S, 3)`` metres."""
+        return torch.cat(
+            [
+                fk.positions,
+                end_site_positions(skeleton, fk),
+                _offset_points(fk, self.synthesized),
+            ],
+            -2,
+        )

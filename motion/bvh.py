@@ -16,13 +16,21 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BVH", "BVHError", "read_bvh", "write_bvh"]
+__all__ = ["BVH", "FRAME_TIME_RANGE", "BVHError", "read_bvh", "write_bvh"]
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 
 
 class BVHError(ValueError):
     """A malformed BVH file; the message names the file and the line."""
+
+
+# Seconds per frame accepted in ``Frame Time:``: from 100 kHz (1e-5 s) to one frame a minute
+# (60 s). Motion capture runs at 24-1000 Hz and pose files use 1 s or so; anything outside
+# this range is a corrupt header (``1e308`` would give a frame rate of 1e-308 Hz).
+FRAME_TIME_RANGE = (1e-5, 60.0)
+
+_END = -2  # ``pending`` marker: an End Site declared, waiting for its "{"
 
 
 @dataclass
@@ -95,124 +103,224 @@ def _floats(tokens: list[str], path: Path, line: int, what: str) -> list[float]:
     return values
 
 
-def read_bvh(path: str | Path) -> BVH:
-    """Read a BVH file.
+def _read_lines(path: Path) -> list[str]:
+    """The file's lines; a UTF-8 byte-order mark is dropped, UTF-16 is refused."""
+    raw = path.read_bytes()
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise BVHError(f"{path}:1: UTF-16 text is not supported; save the file as UTF-8 or ASCII")
+    return raw.decode("utf-8-sig", errors="replace").splitlines()
 
-    Args:
-        path: the file (any line ends, any channel order, exponent notation accepted).
 
-    Returns:
-        :class:`BVH`.
+class _Hierarchy:
+    """Line-by-line parser of the HIERARCHY block; :meth:`feed` returns True at ``MOTION``.
 
-    Raises:
-        BVHError: naming the file and line, for unbalanced braces, unknown channel names, a
-            truncated MOTION block, a row with the wrong number of values, NaN values.
-        FileNotFoundError: if the file does not exist.
+    ``stack`` holds the open blocks: a joint index, or ``-(parent + 3)`` for an End Site.
+    Every problem raises :class:`BVHError` naming the file and the line.
     """
-    path = Path(path)
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[list[float]] = []
-    channels: list[list[str]] = []
-    end_sites: dict[int, np.ndarray] = {}
-    stack: list[int] = []  # open joints; -2 marks an End Site block
-    pending: int | None = None  # joint declared, waiting for its "{"
-    i = 0
-    if not lines or lines[0].strip() != "HIERARCHY":
-        raise BVHError(f"{path}:1: expected 'HIERARCHY' as the first line")
-    i = 1
-    while i < len(lines):
-        lineno = i + 1
-        tokens = lines[i].split()
-        i += 1
-        if not tokens:
-            continue
-        key = tokens[0]
-        if key in ("ROOT", "JOINT"):
-            if len(tokens) < 2:
-                raise BVHError(f"{path}:{lineno}: {key} without a name")
-            if key == "ROOT" and (stack or names):
-                raise BVHError(f"{path}:{lineno}: a second ROOT (only one skeleton per file)")
-            if key == "JOINT" and (not stack or stack[-1] < 0):
-                raise BVHError(f"{path}:{lineno}: JOINT outside a joint block")
-            names.append(" ".join(tokens[1:]))
-            parents.append(stack[-1] if stack else -1)
-            offsets.append([0.0, 0.0, 0.0])
-            channels.append([])
-            pending = len(names) - 1
-        elif key == "End":
-            if not stack or stack[-1] < 0:
-                raise BVHError(f"{path}:{lineno}: End Site outside a joint block")
-            pending = -2
-        elif key == "{":
-            if pending is None:
-                raise BVHError(f"{path}:{lineno}: '{{' without a ROOT, JOINT or End Site")
-            stack.append(pending if pending >= 0 else -(stack[-1] + 3))
-            pending = None
-        elif key == "}":
-            if not stack:
-                raise BVHError(f"{path}:{lineno}: unbalanced '}}'")
-            stack.pop()
-        elif key == "OFFSET":
-            if not stack:
-                raise BVHError(f"{path}:{lineno}: OFFSET outside a block")
-            values = _floats(tokens[1:], path, lineno, "OFFSET")
-            if len(values) != 3:
-                raise BVHError(f"{path}:{lineno}: OFFSET needs 3 values, got {len(values)}")
-            top = stack[-1]
-            if top >= 0:
-                offsets[top] = values
-            else:
-                end_sites[-top - 3] = np.array(values)
-        elif key == "CHANNELS":
-            if not stack or stack[-1] < 0:
-                raise BVHError(f"{path}:{lineno}: CHANNELS outside a joint block")
-            try:
-                count = int(tokens[1])
-            except (IndexError, ValueError):
-                raise BVHError(f"{path}:{lineno}: CHANNELS needs a count") from None
-            declared = tokens[2:]
-            if len(declared) != count:
-                raise BVHError(
-                    f"{path}:{lineno}: CHANNELS declares {count} channels but names {len(declared)}"
-                )
-            for c in declared:
-                if c not in CHANNEL_NAMES:
-                    raise BVHError(
-                        f"{path}:{lineno}: unknown channel name {c!r} (expected one of "
-                        f"{', '.join(CHANNEL_NAMES)})"
-                    )
-            channels[stack[-1]] = declared
-        elif key == "MOTION":
-            if stack:
-                raise BVHError(f"{path}:{lineno}: MOTION before all joint blocks are closed")
-            break
-        else:
-            raise BVHError(f"{path}:{lineno}: unexpected {key!r} in HIERARCHY")
-    else:
-        raise BVHError(f"{path}: no MOTION block (file truncated?)")
-    if not names:
-        raise BVHError(f"{path}: no ROOT joint in HIERARCHY")
 
-    def header(prefix: str) -> str:
+    def __init__(self, path: Path):
+        self.path = path
+        self.names: list[str] = []
+        self.parents: list[int] = []
+        self.offsets: list[list[float] | None] = []
+        self.channels: list[list[str] | None] = []
+        self.end_sites: dict[int, np.ndarray] = {}
+        self.declared_at: list[int] = []  # line of each joint's ROOT/JOINT keyword
+        self.stack: list[int] = []
+        self.pending: tuple[int, int] | None = None  # (joint index or _END, line) before "{"
+        self.end_open: dict[int, int] = {}  # End Site blocks open: parent -> line
+
+    def error(self, lineno: int, message: str) -> BVHError:
+        return BVHError(f"{self.path}:{lineno}: {message}")
+
+    def in_joint(self) -> bool:
+        return bool(self.stack) and self.stack[-1] >= 0
+
+    def feed(self, tokens: list[str], lineno: int) -> bool:
+        key = tokens[0]
+        if self.pending is not None and key != "{":
+            what, line = self.pending
+            kind = "End Site" if what == _END else f"joint {self.names[what]!r}"
+            raise self.error(lineno, f"expected '{{' after the {kind} of line {line}; got {key!r}")
+        if key in ("{", "}") and len(tokens) > 1:
+            raise self.error(
+                lineno, f"unexpected {tokens[1]!r} after {key!r} (one keyword per line)"
+            )
+        handler = {
+            "ROOT": self.joint,
+            "JOINT": self.joint,
+            "End": self.end_site,
+            "{": self.open,
+            "}": self.close,
+            "OFFSET": self.offset,
+            "CHANNELS": self.channel_list,
+        }.get(key)
+        if key == "MOTION":
+            if self.stack:
+                raise self.error(lineno, "MOTION before all joint blocks are closed")
+            return True
+        if handler is None:
+            raise self.error(lineno, f"unexpected {key!r} in HIERARCHY")
+        handler(tokens, lineno)
+        return False
+
+    def joint(self, tokens: list[str], lineno: int) -> None:
+        key = tokens[0]
+        if len(tokens) < 2:
+            raise self.error(lineno, f"{key} without a name")
+        if key == "ROOT" and (self.stack or self.names):
+            raise self.error(lineno, "a second ROOT (only one skeleton per file)")
+        if key == "JOINT" and not self.in_joint():
+            raise self.error(lineno, "JOINT outside a joint block")
+        name = " ".join(tokens[1:])
+        if name in self.names:
+            first = self.declared_at[self.names.index(name)]
+            raise self.error(
+                lineno,
+                f"joint name {name!r} is already used at line {first}; joint names must be unique",
+            )
+        self.names.append(name)
+        self.parents.append(self.stack[-1] if self.stack else -1)
+        self.offsets.append(None)
+        self.channels.append(None)
+        self.declared_at.append(lineno)
+        self.pending = (len(self.names) - 1, lineno)
+
+    def end_site(self, tokens: list[str], lineno: int) -> None:
+        if tokens[1:] != ["Site"]:
+            raise self.error(lineno, f"expected 'End Site'; got {' '.join(tokens)!r}")
+        if not self.in_joint():
+            raise self.error(lineno, "End Site outside a joint block")
+        if self.stack[-1] in self.end_sites:
+            raise self.error(lineno, f"joint {self.names[self.stack[-1]]!r} has a second End Site")
+        self.pending = (_END, lineno)
+
+    def open(self, tokens: list[str], lineno: int) -> None:
+        if self.pending is None:
+            raise self.error(lineno, "'{' without a ROOT, JOINT or End Site")
+        what, line = self.pending
+        if what == _END:
+            self.end_open[self.stack[-1]] = line
+            self.stack.append(-(self.stack[-1] + 3))
+        else:
+            self.stack.append(what)
+        self.pending = None
+
+    def close(self, tokens: list[str], lineno: int) -> None:
+        if not self.stack:
+            raise self.error(lineno, "unbalanced '}'")
+        top = self.stack.pop()
+        if top >= 0 and self.offsets[top] is None:
+            raise self.error(
+                lineno, f"joint {self.names[top]!r} (line {self.declared_at[top]}) has no OFFSET"
+            )
+        if top < 0:
+            parent = -top - 3
+            line = self.end_open.pop(parent)
+            if parent not in self.end_sites:
+                raise self.error(
+                    lineno, f"the End Site of line {line} ({self.names[parent]!r}) has no OFFSET"
+                )
+
+    def offset(self, tokens: list[str], lineno: int) -> None:
+        if not self.stack:
+            raise self.error(lineno, "OFFSET outside a block")
+        values = _floats(tokens[1:], self.path, lineno, "OFFSET")
+        if len(values) != 3:
+            raise self.error(lineno, f"OFFSET needs 3 values, got {len(values)}")
+        top = self.stack[-1]
+        done = self.offsets[top] is not None if top >= 0 else (-top - 3) in self.end_sites
+        if done:
+            raise self.error(lineno, "a second OFFSET in the same block")
+        if top >= 0:
+            self.offsets[top] = values
+        else:
+            self.end_sites[-top - 3] = np.array(values)
+
+    def channel_list(self, tokens: list[str], lineno: int) -> None:
+        if not self.in_joint():
+            raise self.error(lineno, "CHANNELS outside a joint block")
+        try:
+            count = int(tokens[1])
+        except (IndexError, ValueError):
+            raise self.error(lineno, "CHANNELS needs a count") from None
+        declared = tokens[2:]
+        if len(declared) != count:
+            raise self.error(
+                lineno, f"CHANNELS declares {count} channels but names {len(declared)}"
+            )
+        for c in declared:
+            if c not in CHANNEL_NAMES:
+                raise self.error(
+                    lineno,
+                    f"unknown channel name {c!r} (expected one of {', '.join(CHANNEL_NAMES)})",
+                )
+        if len(set(declared)) != len(declared):
+            raise self.error(lineno, f"CHANNELS names a channel twice: {' '.join(declared)}")
+        if self.channels[self.stack[-1]] is not None:
+            raise self.error(lineno, "a second CHANNELS line in the same joint block")
+        self.channels[self.stack[-1]] = declared
+
+
+def _parse_hierarchy(path: Path, lines: list[str]) -> tuple[_Hierarchy, int]:
+    """Parse up to ``MOTION``; returns the parser and the index of the line after it."""
+    i = 0
+    while i < len(lines) and not lines[i].strip():
+        i += 1
+    if i == len(lines):
+        raise BVHError(f"{path}:1: empty file; expected 'HIERARCHY'")
+    if lines[i].strip() != "HIERARCHY":
+        raise BVHError(
+            f"{path}:{i + 1}: expected 'HIERARCHY' as the first line; got {lines[i].strip()[:40]!r}"
+        )
+    parser = _Hierarchy(path)
+    for j in range(i + 1, len(lines)):
+        tokens = lines[j].split()
+        if tokens and parser.feed(tokens, j + 1):
+            if not parser.names:
+                raise BVHError(f"{path}:{j + 1}: MOTION before any ROOT joint")
+            return parser, j + 1
+    if parser.stack or parser.pending is not None:
+        raise BVHError(
+            f"{path}:{len(lines)}: no MOTION block: the file ends inside the HIERARCHY (truncated?)"
+        )
+    raise BVHError(f"{path}: no MOTION block (file truncated?)")
+
+
+def _motion_header(path: Path, lines: list[str], i: int) -> tuple[int, float, int]:
+    """``Frames:`` and ``Frame Time:`` from line index ``i``; returns them and the next index."""
+
+    def header(prefix: str) -> tuple[str, int]:
         nonlocal i
         while i < len(lines) and not lines[i].strip():
             i += 1
         if i >= len(lines) or not lines[i].strip().startswith(prefix):
             raise BVHError(f"{path}:{i + 1}: expected '{prefix}' after MOTION")
-        value = lines[i].strip()[len(prefix) :].strip()
         i += 1
-        return value
+        return lines[i - 1].strip()[len(prefix) :].strip(), i
 
+    text, line = header("Frames:")
     try:
-        num_frames = int(header("Frames:"))
-        frame_time = float(header("Frame Time:"))
-    except ValueError as err:
-        raise BVHError(f"{path}:{i}: bad MOTION header ({err})") from None
-    if num_frames < 1 or not (frame_time > 0 and math.isfinite(frame_time)):
-        raise BVHError(f"{path}:{i}: need Frames >= 1 and Frame Time > 0")
-    num_channels = sum(len(c) for c in channels)
+        num_frames = int(text)
+    except ValueError:
+        num_frames = 0
+    if num_frames < 1:
+        raise BVHError(f"{path}:{line}: 'Frames:' needs a whole number >= 1; got {text!r}")
+    text, line = header("Frame Time:")
+    try:
+        frame_time = float(text)
+    except ValueError:
+        frame_time = math.nan
+    low, high = FRAME_TIME_RANGE
+    if not low <= frame_time <= high:
+        raise BVHError(
+            f"{path}:{line}: 'Frame Time:' needs seconds per frame between {low:g} and "
+            f"{high:g}; got {text!r}"
+        )
+    return num_frames, frame_time, i
+
+
+def _motion_rows(path: Path, lines: list[str], i: int, num_channels: int) -> list[list[float]]:
     rows = []
     for j in range(i, len(lines)):
         tokens = lines[j].split()
@@ -224,6 +332,34 @@ def read_bvh(path: str | Path) -> BVH:
                 f"declares {num_channels} channels"
             )
         rows.append(_floats(tokens, path, j + 1, f"frame {len(rows)}"))
+    return rows
+
+
+def read_bvh(path: str | Path) -> BVH:
+    """Read a BVH file.
+
+    Args:
+        path: the file (any line ends, any channel order, exponent notation accepted; a UTF-8
+            byte-order mark and blank lines before ``HIERARCHY`` are accepted).
+
+    Returns:
+        :class:`BVH`.
+
+    Raises:
+        BVHError: naming the file and line, for unbalanced braces, a keyword where ``{`` was
+            expected, unknown or repeated channel names, a joint or End Site without OFFSET,
+            repeated joint names, a truncated MOTION block, a row with the wrong number of
+            values, NaN values, ``Frames`` < 1, a ``Frame Time`` outside
+            :data:`FRAME_TIME_RANGE` seconds, UTF-16 text.
+        FileNotFoundError: if the file does not exist.
+    """
+    path = Path(path)
+    lines = _read_lines(path)
+    hierarchy, i = _parse_hierarchy(path, lines)
+    num_frames, frame_time, i = _motion_header(path, lines, i)
+    channels = [c or [] for c in hierarchy.channels]
+    num_channels = sum(len(c) for c in channels)
+    rows = _motion_rows(path, lines, i, num_channels)
     if len(rows) != num_frames:
         raise BVHError(
             f"{path}:{len(lines)}: MOTION declares {num_frames} frames but {len(rows)} rows "
@@ -231,11 +367,11 @@ def read_bvh(path: str | Path) -> BVH:
         )
     return BVH(
         path=path,
-        names=names,
-        parents=np.array(parents, dtype=np.int64),
-        offsets=np.array(offsets, dtype=np.float64),
+        names=hierarchy.names,
+        parents=np.array(hierarchy.parents, dtype=np.int64),
+        offsets=np.array(hierarchy.offsets, dtype=np.float64).reshape(-1, 3),
         channels=channels,
-        end_sites=end_sites,
+        end_sites=hierarchy.end_sites,
         frame_time=frame_time,
         motion=np.array(rows, dtype=np.float64).reshape(num_frames, num_channels),
     )

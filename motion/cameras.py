@@ -101,52 +101,162 @@ class CameraRig:
         return cls(k, r, t, torch.zeros(P.shape[0], 5, dtype=P.dtype), size, names)
 
 
+def _describe(value) -> str:
+    """A short account of a TOML value for an error message (type, shape or raggedness)."""
+    if isinstance(value, str):
+        return f"the string {value[:40]!r}"
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    if isinstance(value, int | float):
+        return f"the number {value!r}"
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, list):
+        nested = [isinstance(v, list) for v in value]
+        if any(nested) and not all(nested):
+            return "a list mixing numbers and lists"
+        if all(nested) and len({len(v) for v in value}) > 1:
+            return f"a ragged list (rows of {', '.join(str(len(v)) for v in value)} values)"
+        bad = [v for v in _flatten(value) if isinstance(v, bool) or not isinstance(v, int | float)]
+        if bad:
+            return f"a list holding {_describe(bad[0])}"
+        return f"shape {_shape(value)}"
+    return type(value).__name__
+
+
+def _flatten(value) -> list:
+    if isinstance(value, list):
+        return [x for v in value for x in _flatten(v)]
+    return [value]
+
+
+def _shape(value) -> tuple[int, ...]:
+    """Shape of a nested list that is known to be regular."""
+    shape = []
+    while isinstance(value, list):
+        shape.append(len(value))
+        value = value[0] if value else None
+    return tuple(shape)
+
+
+def _is_numeric_array(value, shape: tuple[int, ...]) -> bool:
+    """A nested list of real numbers (not booleans) with exactly this shape."""
+    if not shape:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    return (
+        isinstance(value, list)
+        and len(value) == shape[0]
+        and all(_is_numeric_array(v, shape[1:]) for v in value)
+    )
+
+
+def _as_floats(value):
+    """Nested numbers as floats; an integer too large for a float becomes inf (then refused)."""
+    if isinstance(value, list):
+        return [_as_floats(v) for v in value]
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+
+
+def _camera_array(path: Path, key: str, cam: dict, name: str, shapes) -> Tensor:
+    """``cam[name]`` as a float64 tensor of one of ``shapes``, finite; else a one-line error."""
+    where = f"{path}: camera [{key}] '{name}'"
+    if name not in cam:
+        raise CameraFileError(f"{path}: camera [{key}] has no '{name}'")
+    value = cam[name]
+    shape = next((s for s in shapes if _is_numeric_array(value, s)), None)
+    if shape is None:
+        wanted = " or ".join(f"shape {s}" for s in shapes)
+        raise CameraFileError(f"{where} must be numbers of {wanted}; got {_describe(value)}")
+    tensor = torch.tensor(_as_floats(value), dtype=torch.float64)
+    if not torch.isfinite(tensor).all():
+        raise CameraFileError(f"{where} must be finite; got {value}")
+    return tensor
+
+
+def _check_intrinsics(path: Path, key: str, k: Tensor) -> None:
+    """K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (what :meth:`project` uses)."""
+    structural = torch.tensor([k[1, 0], k[2, 0], k[2, 1], k[2, 2] - 1.0]).abs().max()
+    if not (k[0, 0] > 0 and k[1, 1] > 0) or structural > 1e-9:
+        raise CameraFileError(
+            f"{path}: camera [{key}] 'matrix' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
+            f"fx, fy > 0; got {k.tolist()}"
+        )
+
+
+def _camera(path: Path, key: str, cam: dict) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, str]:
+    """One ``[cam]`` table -> K, R, t, dist (5,), size, name."""
+    fisheye = cam.get("fisheye", False)
+    if not isinstance(fisheye, bool):
+        raise CameraFileError(
+            f"{path}: camera [{key}] 'fisheye' must be a TOML boolean (true or false, unquoted); "
+            f"got {_describe(fisheye)}"
+        )
+    if fisheye:
+        raise CameraFileError(f"{path}: camera [{key}] is fisheye, which is not supported")
+    k = _camera_array(path, key, cam, "matrix", [(3, 3)])
+    _check_intrinsics(path, key, k)
+    dist = _camera_array(path, key, cam, "distortions", [(4,), (5,)])
+    dist = torch.cat([dist, torch.zeros(5 - len(dist), dtype=torch.float64)])
+    rotation = _camera_array(path, key, cam, "rotation", [(3,)])
+    translation = _camera_array(path, key, cam, "translation", [(3,)])
+    size = _camera_array(path, key, cam, "size", [(2,)])
+    if not (size >= 1).all():
+        raise CameraFileError(
+            f"{path}: camera [{key}] 'size' must be [width, height] of at least 1 pixel; got "
+            f"{cam['size']}"
+        )
+    name = cam.get("name", key)
+    if not isinstance(name, str):
+        raise CameraFileError(
+            f"{path}: camera [{key}] 'name' must be a string; got {_describe(name)}"
+        )
+    r = axis_angle_to_rotation_matrix(rotation[None])[0]
+    return k, r, translation, dist, size, name
+
+
 def load_pose2sim_calibration(path: str | Path) -> CameraRig:
     """Read a Pose2Sim calibration TOML (``[cam]`` tables with ``size``, ``matrix``,
-    ``distortions`` (k1 k2 p1 p2), ``rotation`` (Rodrigues), ``translation``, ``fisheye``).
+    ``distortions`` (k1 k2 p1 p2, or OpenCV's five with k3), ``rotation`` (Rodrigues),
+    ``translation``, ``fisheye``).
+
+    Values must be TOML numbers (not strings) of the right shape and finite; ``matrix`` an
+    intrinsic matrix with positive focal lengths and bottom row ``[0, 0, 1]``; ``size`` at least
+    1 x 1 pixel; ``fisheye`` a TOML boolean -- a quoted ``"false"`` is refused rather than
+    guessed at (any non-empty string would otherwise read as true).
 
     Raises:
-        CameraFileError: naming the file, the camera and the key that is missing or malformed.
+        CameraFileError: naming the file, the camera and the key that is missing or malformed,
+            or saying the file is not UTF-8 text or not TOML.
         FileNotFoundError: if the file does not exist.
     """
     path = Path(path)
+    raw = path.read_bytes()
     try:
-        data = tomllib.loads(path.read_text())
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise CameraFileError(
+            f"{path}: not a text file (not valid UTF-8 at byte {err.start}); expected a Pose2Sim "
+            "calibration TOML"
+        ) from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise CameraFileError(f"{path}: not valid TOML ({err})") from None
     cams = {k: v for k, v in data.items() if isinstance(v, dict) and k != "metadata"}
     if not cams:
         raise CameraFileError(f"{path}: no camera tables found")
-    ks, rs, ts, ds, sizes, names = [], [], [], [], [], []
-    for key, cam in cams.items():
-
-        def get(name, shape, key=key, cam=cam):
-            if name not in cam:
-                raise CameraFileError(f"{path}: camera [{key}] has no '{name}'")
-            value = torch.tensor(cam[name], dtype=torch.float64)
-            if tuple(value.shape) != shape or not torch.isfinite(value).all():
-                raise CameraFileError(
-                    f"{path}: camera [{key}] '{name}' must be finite with shape {shape}; got "
-                    f"{tuple(value.shape)}"
-                )
-            return value
-
-        if cam.get("fisheye", False):
-            raise CameraFileError(f"{path}: camera [{key}] is fisheye, which is not supported")
-        ks.append(get("matrix", (3, 3)))
-        dist = get("distortions", (4,))
-        ds.append(torch.cat([dist, torch.zeros(1, dtype=torch.float64)]))
-        rs.append(axis_angle_to_rotation_matrix(get("rotation", (3,))[None])[0])
-        ts.append(get("translation", (3,)))
-        sizes.append(get("size", (2,)))
-        names.append(str(cam.get("name", key)))
+    parts = [_camera(path, key, cam) for key, cam in cams.items()]
+    ks, rs, ts, ds, sizes, names = zip(*parts, strict=True)
     return CameraRig(
         torch.stack(ks),
         torch.stack(rs),
         torch.stack(ts),
         torch.stack(ds),
         torch.stack(sizes),
-        names,
+        list(names),
     )
 
 

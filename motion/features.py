@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "MAX_SCALE",
     "VideoError",
     "distance_to_edges",
     "edges",
@@ -36,42 +37,124 @@ class VideoError(ValueError):
     """A video that cannot be used (does not open, has no frames, inconsistent sizes)."""
 
 
+# Largest accepted resize factor: upscaling beyond this only multiplies memory (a 1080p video
+# at scale 8 is 200 MB a frame); features are computed at or below the native resolution.
+MAX_SCALE = 8.0
+
+
+def _whole(value, name: str, path: Path, low: int) -> int:
+    """An int (not a bool) >= ``low``, else a :class:`VideoError` naming the argument."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise VideoError(f"{path}: {name} must be a whole number >= {low}; got {value!r}")
+    return int(value)
+
+
+def _check_read_args(path: Path, start, count, step, scale) -> None:
+    _whole(start, "start", path, 0)
+    _whole(step, "step", path, 1)
+    if count is not None:
+        if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
+            raise VideoError(
+                f"{path}: count must be None (every frame) or a whole number >= 1; got {count!r}"
+            )
+    if isinstance(scale, bool) or not isinstance(scale, int | float | np.floating):
+        raise VideoError(f"{path}: scale must be a number in (0, {MAX_SCALE:g}]; got {scale!r}")
+    if not 0 < scale <= MAX_SCALE:
+        raise VideoError(f"{path}: scale must be in (0, {MAX_SCALE:g}]; got {scale!r}")
+
+
+def _resize(frame: np.ndarray, scale: float, path: Path) -> np.ndarray:
+    """Area-resize by ``scale``; the result must keep at least one pixel each way."""
+    h, w = frame.shape[:2]
+    size = (round(w * scale), round(h * scale))
+    if min(size) < 1:
+        raise VideoError(f"{path}: scale {scale!r} shrinks the {w} x {h} frames to nothing")
+    return cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
+
+
+def _decode(cap, path: Path, start: int, count, step: int, scale: float):
+    """The kept frames (RGB, resized) and the number of frames read from ``cap``."""
+    frames: list[np.ndarray] = []
+    shape = None
+    index = 0
+    while count is None or len(frames) < count:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        if index >= start and (index - start) % step == 0:
+            if shape is not None and frame.shape[:2] != shape:
+                raise VideoError(
+                    f"{path}: frame {index} is {frame.shape[1]} x {frame.shape[0]} px but "
+                    f"earlier frames are {shape[1]} x {shape[0]}"
+                )
+            shape = frame.shape[:2]
+            if scale != 1.0:
+                frame = _resize(frame, scale, path)
+            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+        index += 1
+    return frames, index
+
+
 def read_video(
     path: str | Path, start: int = 0, count: int | None = None, step: int = 1, scale: float = 1.0
 ) -> np.ndarray:
     """Decode frames ``start, start + step, ...`` (at most ``count``) as ``(F, H, W, 3)`` uint8 RGB,
     optionally resized by ``scale`` (area interpolation).
 
+    Args:
+        path: a video file OpenCV can decode.
+        start: first frame index, >= 0.
+        count: at most this many frames (>= 1), or None for every frame to the end.
+        step: keep every ``step``-th frame, >= 1.
+        scale: resize factor in (0, :data:`MAX_SCALE`]; frames keep at least 1 x 1 pixel.
+
     Raises:
-        VideoError: the file does not open, or no frame could be decoded.
+        VideoError: naming the file: an argument out of range, the file does not open, no
+            frame at or after ``start`` (with the number of frames the file has), frame sizes
+            changing within the file.
     """
     path = Path(path)
+    _check_read_args(path, start, count, step, scale)
     if not path.is_file():
         raise VideoError(f"{path}: no such video file")
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise VideoError(f"{path}: OpenCV cannot open this video")
-    frames = []
-    index = 0
     try:
-        while count is None or len(frames) < count:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            if index >= start and (index - start) % step == 0:
-                if scale != 1.0:
-                    frame = cv2.resize(
-                        frame, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA
-                    )
-                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
-            index += 1
+        frames, index = _decode(cap, path, start, count, step, scale)
     finally:
         cap.release()
     if not frames:
+        if index == 0:
+            raise VideoError(f"{path}: OpenCV decoded no frames from this file")
         raise VideoError(
-            f"{path}: no frames decoded (from frame {start}, {index} frames in the file)"
+            f"{path}: no frames at or after frame {start}: the file has {index} frames"
         )
     return np.stack(frames)
+
+
+def _check_camera_paths(paths) -> list:
+    if isinstance(paths, str | Path):
+        raise VideoError(
+            f"read_camera_videos needs a list of video paths, one per camera; got the single "
+            f"path {str(paths)!r}"
+        )
+    paths = list(paths)
+    if not paths:
+        raise VideoError("read_camera_videos needs at least one video path; got an empty list")
+    return paths
+
+
+def _check_same_sizes(paths: list, videos: list[np.ndarray]) -> None:
+    sizes = [(v.shape[2], v.shape[1]) for v in videos]
+    if len(set(sizes)) > 1:
+        detail = ", ".join(
+            f"{Path(p).name}: {w} x {h}" for p, (w, h) in zip(paths, sizes, strict=True)
+        )
+        raise VideoError(
+            f"cameras have different frame sizes ({detail}); pass expected_sizes (e.g. "
+            "CameraRig.size) to accept per-camera sizes that match a calibration"
+        )
 
 
 def read_camera_videos(
@@ -79,16 +162,42 @@ def read_camera_videos(
 ) -> list[np.ndarray]:
     """Read one synchronised video per camera and check that they fit together.
 
+    Without ``expected_sizes`` every camera must have the same frame size. With it, each camera
+    is checked against its own expected size instead, so cameras of different sizes are
+    accepted when each matches its calibration (the pose2sim demo's cameras are 1080 and
+    1088 px wide).
+
     Args:
-        paths: one video per camera.
-        size_tolerance: pixels by which a video may differ from ``expected_sizes`` (encoders
-            pad: the pose2sim demo's cam01 is 1080 px wide where its calibration says 1088).
+        paths: one video per camera (a non-empty list).
+        size_tolerance: pixels (>= 0) by which a video may differ from ``expected_sizes``
+            (encoders pad: the pose2sim demo's cam01 is 1080 px wide where its calibration
+            says 1088).
         expected_sizes: optional ``(C, 2)`` (width, height) per camera, e.g. ``CameraRig.size``.
         **kwargs: passed to :func:`read_video` (start, count, step, scale).
 
+    Returns:
+        ``C`` arrays ``(F, H_c, W_c, 3)`` uint8, the same ``F`` for every camera.
+
     Raises:
-        VideoError: naming the cameras whose frame counts or sizes disagree.
+        VideoError: no videos, ``expected_sizes`` not one row per camera, cameras whose frame
+            counts disagree, sizes that disagree (with each other, or with ``expected_sizes``).
     """
+    paths = _check_camera_paths(paths)
+    if (
+        isinstance(size_tolerance, bool)
+        or not isinstance(size_tolerance, int)
+        or size_tolerance < 0
+    ):
+        raise VideoError(
+            f"size_tolerance must be a whole number of pixels >= 0; got {size_tolerance!r}"
+        )
+    if expected_sizes is not None:
+        expected_sizes = np.asarray(expected_sizes, dtype=np.float64)
+        if expected_sizes.shape != (len(paths), 2):
+            raise VideoError(
+                f"expected_sizes must be ({len(paths)}, 2), a (width, height) per camera; got "
+                f"shape {expected_sizes.shape}"
+            )
     videos = [read_video(p, **kwargs) for p in paths]
     counts = [len(v) for v in videos]
     if len(set(counts)) > 1:
@@ -96,15 +205,17 @@ def read_camera_videos(
         raise VideoError(
             f"cameras have different frame counts ({detail}); they must be synchronised"
         )
-    if expected_sizes is not None:
-        scale = kwargs.get("scale", 1.0)
-        for p, v, size in zip(paths, videos, np.asarray(expected_sizes), strict=True):
-            got = np.array([v.shape[2], v.shape[1]]) / scale
-            if np.abs(got - size).max() > size_tolerance:
-                raise VideoError(
-                    f"{p}: frames are {int(got[0])} x {int(got[1])} px but the calibration says "
-                    f"{int(size[0])} x {int(size[1])}"
-                )
+    if expected_sizes is None:
+        _check_same_sizes(paths, videos)
+        return videos
+    scale = kwargs.get("scale", 1.0)
+    for p, v, size in zip(paths, videos, expected_sizes, strict=True):
+        got = np.array([v.shape[2], v.shape[1]]) / scale
+        if np.abs(got - size).max() > size_tolerance:
+            raise VideoError(
+                f"{p}: frames are {int(got[0])} x {int(got[1])} px but the calibration says "
+                f"{int(size[0])} x {int(size[1])}"
+            )
     return videos
 
 

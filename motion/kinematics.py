@@ -182,6 +182,12 @@ class Skeleton:
         )
 
 
+# Plausible metres per file unit for an estimate: from micrometres to 100 m. Outside this the
+# rest pose is degenerate (all offsets ~0) or corrupt, and a guess would silently scale the
+# root translation by an absurd factor.
+_UNIT_RANGE_M = (1e-6, 100.0)
+
+
 def estimate_metres_per_unit(bvh: BVH, leg_length_m: float = 0.85) -> tuple[float, str]:
     """Guess the file's length unit from its rest-pose leg length.
 
@@ -190,6 +196,13 @@ def estimate_metres_per_unit(bvh: BVH, leg_length_m: float = 0.85) -> tuple[floa
     Exact units are unknowable from a BVH file; the estimate is right to ~15 % for adults,
     which is enough to tell metres, centimetres, inches and CMU's ~5.6 cm units apart.
     Returns the factor and a note saying it was estimated.
+
+    Raises:
+        SkeletonError: naming the file when the rest pose gives no length to measure (every
+            OFFSET and End Site offset zero, as in files that animate per-joint positions
+            instead) or an implausible one. There is no sensible fallback: the factor also
+            scales the root translation, so a guess of 1 could be wrong by 100x without any
+            sign; pass ``metres_per_unit`` to :meth:`Skeleton.from_bvh` instead.
     """
     parents = bvh.parents
     offsets = bvh.offsets
@@ -200,7 +213,19 @@ def estimate_metres_per_unit(bvh: BVH, leg_length_m: float = 0.85) -> tuple[floa
     drop = max(-float(t[1]) for t in tips)  # Y is up in BVH files
     if drop <= 0:
         drop = max(float(np.linalg.norm(t)) for t in tips)
+    if drop <= 0:
+        raise SkeletonError(
+            f"{bvh.path}: cannot estimate the length unit: every OFFSET and End Site offset is "
+            "zero, so the rest pose has no size; pass metres_per_unit explicitly"
+        )
     factor = leg_length_m / drop
+    low, high = _UNIT_RANGE_M
+    if not low <= factor <= high:
+        raise SkeletonError(
+            f"{bvh.path}: cannot estimate the length unit: the rest leg is {drop:.3g} file units, "
+            f"which would make {factor:.3g} m per unit (expected {low:g} to {high:g}); pass "
+            "metres_per_unit explicitly"
+        )
     # snap to a common unit when close (metres, centimetres, inches)
     for unit in (1.0, 0.01, 0.0254):
         if abs(np.log(factor / unit)) < np.log(1.45):  # units differ by >= 2.54x
