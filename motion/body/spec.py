@@ -1,0 +1,196 @@
+"""A body as data: rigid parts in SE(3), the tree that joins them, and where they join.
+
+Built from a skeleton and a reference motion, with nothing specific to one skeleton: the
+parts and their tree come from the body-part spec (``motion/data/bodyparts/parts.yaml``: each
+part's landmarks, radii and ``parent``), the joints' positions from the motion. Each part's
+*frame* is the global rotation of one skeleton joint on the chain between its two landmarks
+-- the one in whose frame the part's far landmark and its children's joints move least over
+the reference motion (a single bone: exactly rigid; a chain such as the spine: its stiffest
+link). The capsule axis and the joint offsets are their means in those frames, and the
+residual motion is reported (:attr:`BodySpec.rigidity`), so a model error is a number, not a
+surprise.
+
+A part's pose is ``(x, y, z, qw, qx, qy, qz)``: its proximal landmark in metres and its frame
+(unit quaternion, ``w`` first, as :mod:`pgm.rotations`). Shapes: ``T`` frames, ``P`` parts,
+``J`` skeleton joints, ``R`` landmark roles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import yaml
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
+from torch import Tensor
+
+from motion.body.observation import PartShapes
+from motion.bodyparts import DATA, BodyModel, joint_of_point
+from motion.kinematics import FKResult, Skeleton
+
+__all__ = ["BodySpec", "BodySpecError", "part_tree"]
+
+
+class BodySpecError(ValueError):
+    """A body-part spec that does not describe a tree of parts over the skeleton."""
+
+
+def part_tree(model: BodyModel, path=None) -> Tensor:
+    """``(P,)`` long, the parent part of each part (-1 for the root) from the spec's
+    ``parent`` entries, checked to form one tree."""
+    path = path or DATA / "parts.yaml"
+    spec = yaml.safe_load(path.read_text())["parts"]
+    index = {name: i for i, name in enumerate(model.part_names)}
+    parents = []
+    for name in model.part_names:
+        parent = spec.get(name, {}).get("parent", "missing")
+        if parent == "missing":
+            raise BodySpecError(f"{path}: part {name!r} has no 'parent' entry (null for the root)")
+        if parent is not None and parent not in index:
+            raise BodySpecError(f"{path}: part {name!r} names an unknown parent {parent!r}")
+        parents.append(-1 if parent is None else index[parent])
+    parents = torch.tensor(parents)
+    if int((parents < 0).sum()) != 1:
+        raise BodySpecError(
+            f"{path}: expected exactly one root part; got {int((parents < 0).sum())}"
+        )
+    for p in range(len(parents)):  # every part reaches the root without a cycle
+        seen, q = set(), p
+        while q >= 0:
+            if q in seen:
+                raise BodySpecError(
+                    f"{path}: the parts' parents form a cycle through {model.part_names[q]!r}"
+                )
+            seen.add(q)
+            q = int(parents[q])
+    return parents
+
+
+@dataclass(frozen=True)
+class BodySpec:
+    """Rigid parts, their tree and joints.
+
+    Attributes:
+        part_names: P names. parents: ``(P,)`` long, -1 for the root.
+        shapes: each part's capsule in its frame (:class:`PartShapes`).
+        offsets: ``(P, 3)`` metres, each part's proximal landmark in its parent's frame
+            (the joint; 0 for the root).
+        frame_joints: ``(P,)`` long, the skeleton joint whose global rotation is the part's
+            frame.
+        from_roles, to_roles: ``(P,)`` long, the landmark roles at each part's ends.
+        rigidity: ``(P,)`` metres, the mean distance the part's far landmark and its
+            children's joints move in its frame over the reference motion (0: rigid).
+    """
+
+    part_names: list[str]
+    parents: Tensor
+    shapes: PartShapes
+    offsets: Tensor
+    frame_joints: Tensor
+    from_roles: Tensor
+    to_roles: Tensor
+    rigidity: Tensor
+
+    @property
+    def num_parts(self) -> int:
+        return len(self.part_names)
+
+    @property
+    def edges(self) -> Tensor:
+        """``(P - 1, 2)`` long joints ``(parent, child)``, parents before children."""
+        order = self.topological_order()
+        return torch.stack([self.parents[order[1:]], order[1:]], 1)
+
+    def topological_order(self) -> Tensor:
+        """Parts ordered root first, every parent before its children."""
+        depth = torch.zeros(self.num_parts, dtype=torch.long)
+        for p in range(self.num_parts):
+            q = int(self.parents[p])
+            while q >= 0:
+                depth[p] += 1
+                q = int(self.parents[q])
+        return torch.sort(depth, stable=True).indices
+
+    @classmethod
+    def from_motion(cls, skeleton: Skeleton, model: BodyModel, fk: FKResult) -> BodySpec:
+        """The spec of ``model`` on ``skeleton``, with frames, axes and offsets measured on
+        the reference motion ``fk`` (``(T, J, ...)``; a single frame gives a rest pose)."""
+        parents = part_tree(model)
+        landmarks = model.landmarks(model.skeleton_points(skeleton, fk))  # (T, R, 3)
+        roles = {r: i for i, r in enumerate(model.roles)}
+        spec = yaml.safe_load((DATA / "parts.yaml").read_text())["parts"]
+        from_roles = torch.tensor([roles[spec[p]["from"]] for p in model.part_names])
+        to_roles = torch.tensor([roles[spec[p]["to"]] for p in model.part_names])
+        joints = [_chain(skeleton, model, spec[p]) for p in model.part_names]
+        frames, axes, rigidity = [], [], []
+        for p in range(len(model.part_names)):
+            children = (parents == p).nonzero().flatten()
+            targets = torch.cat([to_roles[p : p + 1], from_roles[children]])
+            rel = landmarks[:, targets] - landmarks[:, from_roles[p], None]  # (T, n, 3)
+            best = min(joints[p], key=lambda j: _spread(fk.rotations[:, j], rel))
+            frames.append(best)
+            rigidity.append(_spread(fk.rotations[:, best], rel))
+        frame_joints = torch.tensor(frames)
+        rot = fk.rotations[:, frame_joints]  # (T, P, 3, 3)
+        local_to = _in_frame(rot, landmarks[:, to_roles] - landmarks[:, from_roles])
+        axes = local_to.mean(0)
+        offsets = torch.zeros(len(parents), 3, dtype=landmarks.dtype)
+        for q in range(len(parents)):
+            p = int(parents[q])
+            if p >= 0:
+                rel = landmarks[:, from_roles[q]] - landmarks[:, from_roles[p]]
+                offsets[q] = _in_frame(rot[:, p], rel).mean(0)
+        return cls(
+            list(model.part_names),
+            parents,
+            PartShapes(axes, model.radii.to(axes)),
+            offsets,
+            frame_joints,
+            from_roles,
+            to_roles,
+            torch.tensor(rigidity, dtype=landmarks.dtype),
+        )
+
+    def poses(self, model: BodyModel, skeleton: Skeleton, fk: FKResult) -> Tensor:
+        """Part poses of a skeleton posture: ``(..., P, 7)`` (proximal landmark, frame)."""
+        landmarks = model.landmarks(model.skeleton_points(skeleton, fk))
+        origin = landmarks[..., self.from_roles, :]
+        quat = rotation_matrix_to_quaternion(
+            fk.rotations[..., self.frame_joints, :, :].contiguous()
+        )
+        return torch.cat([origin, quat.to(origin)], -1)
+
+    def landmarks(self, poses: Tensor) -> Tensor:
+        """Both end landmarks of every part from part poses: ``(..., P, 7)`` ->
+        ``(..., P, 2, 3)`` (the capsules' segments)."""
+        return self.shapes.segments(poses, torch.arange(self.num_parts))
+
+
+def _chain(skeleton: Skeleton, model: BodyModel, part: dict) -> list[int]:
+    """Skeleton joints from the part's proximal landmark's joint to its distal one's
+    (excluding the distal joint itself, which rotates what lies beyond it)."""
+    first, _ = joint_of_point(model.mapping[part["from"]][0])
+    last_name, offset = joint_of_point(model.mapping[part["to"]][0])
+    start = skeleton.index(first)
+    last = skeleton.index(last_name)
+    chain = [last] if offset else []  # an End Site or a synthesized end moves with its joint
+    j = int(skeleton.parents[last])
+    while j >= 0 and last != start:
+        chain.append(j)
+        if j == start:
+            break
+        j = int(skeleton.parents[j])
+    if start not in chain:
+        chain.append(start)  # the landmarks are not on one chain: the proximal joint's frame
+    return chain
+
+
+def _in_frame(rotations: Tensor, vectors: Tensor) -> Tensor:
+    """World vectors in the frames: ``(..., 3, 3)``, ``(..., 3)`` -> ``(..., 3)`` (R^T v)."""
+    return (rotations.transpose(-1, -2) @ vectors.unsqueeze(-1)).squeeze(-1)
+
+
+def _spread(rotations: Tensor, vectors: Tensor) -> float:
+    """Mean distance of vectors (T, n, 3), expressed in frames (T, 3, 3), from their mean."""
+    local = _in_frame(rotations[:, None], vectors)
+    return float((local - local.mean(0)).norm(dim=-1).mean())
