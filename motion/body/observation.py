@@ -238,31 +238,50 @@ class RestLayers:
 def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) -> RestLayers:
     """Render the nearest two surfaces of all parts at every pixel.
 
-    Parts are projected capsules with leading shape ``(B, T, C, P)``; pixels are processed in
-    bands of ``rows`` image rows so that the ``(..., P, pixels)`` distance field stays small.
+    Parts are projected capsules with leading shape ``(B, T, C, P)``. Only the pixels of
+    each image's body box (every part's extent, one common size for the batch) are
+    evaluated -- ~1/5 of a 160 x 120 image for a whole body -- in bands of ``rows`` box rows,
+    so that the ``(..., P, pixels)`` distance field stays small; the rest is background.
     Returns :class:`RestLayers` ``(B, T, C, H, W)``.
     """
     lead = parts.ends.shape[:-3]
-    label = torch.empty((*lead, height * width), dtype=torch.long, device=parts.ends.device)
-    near = torch.empty((*lead, height * width), dtype=parts.ends.dtype, device=parts.ends.device)
-    second = torch.empty_like(near)
-    u = torch.arange(width, dtype=parts.ends.dtype, device=parts.ends.device)
-    for top in range(0, height, rows):
-        v = torch.arange(top, min(top + rows, height), dtype=u.dtype, device=u.device)
-        grid = torch.stack(torch.meshgrid(v, u, indexing="ij")[::-1], -1).reshape(-1, 2)
-        sdf, t = capsule_sdf(grid, parts.ends, parts.radii)  # (..., P, n)
-        z = parts.depth[..., 0:1] + t * (parts.depth[..., 1:2] - parts.depth[..., 0:1])
+    p = parts.ends.shape[-3]
+    n = math.prod(lead)
+    dev, dtype = parts.ends.device, parts.ends.dtype
+    ends = parts.ends.reshape(n, p, 2, 2)
+    radii = parts.radii.expand(*lead, p, 2).reshape(n, p, 2)
+    depth = parts.depth.reshape(n, p, 2)
+    reach = radii.amax(-1)[..., None]  # (n, P, 1)
+    top_left = (ends.amin(-2) - reach).amin(-2).floor()  # (n, 2) u, v
+    bottom_right = (ends.amax(-2) + reach).amax(-2).ceil()
+    limit = torch.tensor([width - 1, height - 1], dtype=dtype, device=dev)
+    top_left = top_left.clamp(min=0)
+    bottom_right = torch.minimum(bottom_right, limit)
+    size = (bottom_right - top_left + 1).clamp(min=1).amax(0)  # (2,) box width, height
+    box_w, box_h = int(size[0]), int(size[1])
+    box = torch.tensor([box_w, box_h], dtype=dtype, device=dev)
+    origin = torch.minimum(top_left, limit + 1 - box).clamp(min=0)  # boxes inside the image
+    label = torch.full((n, height * width), -1, dtype=torch.long, device=dev)
+    near = torch.full((n, height * width), math.inf, dtype=dtype, device=dev)
+    second = near.clone()
+    u = torch.arange(box_w, dtype=dtype, device=dev)
+    for top in range(0, box_h, rows):
+        v = torch.arange(top, min(top + rows, box_h), dtype=dtype, device=dev)
+        local = torch.stack(torch.meshgrid(v, u, indexing="ij")[::-1], -1).reshape(-1, 2)
+        pixels = origin[:, None, :] + local[None]  # (n, m, 2)
+        sdf, t = capsule_sdf(pixels[:, None], ends, radii)  # (n, P, m)
+        z = depth[..., 0:1] + t * (depth[..., 1:2] - depth[..., 0:1])
         z = torch.where(sdf <= 0, z, torch.full_like(z, math.inf))
-        if z.shape[-2] >= 2:
+        if p >= 2:
             top2, idx = torch.topk(z, 2, dim=-2, largest=False)
-            first, nxt = top2[..., 0, :], top2[..., 1, :]
+            first, nxt = top2[:, 0], top2[:, 1]
         else:
             first, idx = z.min(-2, keepdim=True)
-            nxt = torch.full_like(first[..., 0, :], math.inf)
-            first = first[..., 0, :]
-        band = slice(top * width, top * width + grid.shape[0])
-        near[..., band], second[..., band] = first, nxt
-        label[..., band] = torch.where(torch.isfinite(first), idx[..., 0, :], -1)
+            first, nxt = first[:, 0], torch.full_like(first[:, 0], math.inf)
+        flat = (pixels[..., 1] * width + pixels[..., 0]).long()  # (n, m)
+        near.scatter_(1, flat, first)
+        second.scatter_(1, flat, nxt)
+        label.scatter_(1, flat, torch.where(torch.isfinite(first), idx[:, 0], -1))
     shape = (*lead, height, width)
     return RestLayers(label.reshape(shape), near.reshape(shape), second.reshape(shape))
 

@@ -138,10 +138,13 @@ def test_a_part_hidden_behind_the_body_neither_gains_nor_loses(scene):
     assert unaware.samples(x, torch.tensor([forearm]), poses).interior.own.all()
 
 
-def test_body_layers_equal_label_maps(scene):
+@pytest.mark.parametrize("shift", [0.0, 1.3], ids=["inside", "leaving-the-image"])
+def test_body_layers_equal_label_maps(scene, shift):
     """The two-layer render: the nearest surface is label_map's; the rest without part j
-    (second layer where j is nearest) is label_map without j."""
+    (second layer where j is nearest) is label_map without j -- also for a body half out of
+    the image (its box clamped to the image)."""
     seg, _, _, rig, _, _, model = scene
+    seg = seg + torch.tensor([shift, 0.0, 0.0], dtype=F64)
     parts = project_parts(rig, seg[None, None], model.radii)  # (1, 1, C, P, ...)
     layers = body_layers(parts, H, W, rows=7)  # bands that do not divide H
     labels, depth = label_map(project_parts(rig, seg, model.radii), H, W)
