@@ -1,11 +1,12 @@
-"""Render the bundled CMU walk as body parts with its skeleton: docs/walk_parts.png.
+"""Render the bundled CMU walk as body parts with its skeleton (the README's picture).
 
-Run: ``python examples/render_walk.py [OUT.png]``.
+Run: ``python examples/render_walk.py [OUT.png]`` (default ``runs/walk_parts.png``), or
+``python examples/render_walk.py --docs`` to refresh the tracked ``docs/walk_parts.png``.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import cv2
@@ -19,7 +20,10 @@ from motion.draw import contact_sheet, draw_parts, draw_skeleton
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.render import ProjectedParts, project_parts
 
-BVH = Path(__file__).resolve().parents[1] / "motion" / "data" / "cmu_02_01_walk.bvh"
+ROOT = Path(__file__).resolve().parents[1]
+BVH = ROOT / "motion" / "data" / "cmu_02_01_walk.bvh"
+DEFAULT_OUT = Path("runs/walk_parts.png")
+DOCS_OUT = ROOT / "docs" / "walk_parts.png"
 
 
 def main(out: Path) -> Path:
@@ -66,5 +70,20 @@ def main(out: Path) -> Path:
     return out
 
 
+def _out_path(argv: list[str] | None = None) -> Path:
+    """The output path from the command line: OUT.png, --docs, or the default."""
+    parser = argparse.ArgumentParser(description="Render the bundled CMU walk as body parts.")
+    parser.add_argument(
+        "out", nargs="?", type=Path, default=DEFAULT_OUT, help=f"PNG to write ({DEFAULT_OUT})"
+    )
+    parser.add_argument(
+        "--docs", action="store_true", help=f"write the tracked {DOCS_OUT.relative_to(ROOT)}"
+    )
+    args = parser.parse_args(argv)
+    if args.docs and args.out != DEFAULT_OUT:
+        parser.error("give either OUT.png or --docs, not both")
+    return DOCS_OUT if args.docs else args.out
+
+
 if __name__ == "__main__":
-    print(main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path("docs/walk_parts.png")))
+    print(f"wrote {main(_out_path())}")

@@ -1,73 +1,154 @@
-"""Command line.
+"""Command line of the experiments.
 
-``python -m experiments demo [--bvh FILE] [--seed N] [--out-dir DIR]``: the time-alignment demo.
-``python -m experiments run CONFIG.yaml [key=value ...]``: run a config (``seed=``,
-``out_dir=`` and ``tiny=true`` are always accepted); exits non-zero with a one-line reason.
+  python -m experiments run CONFIG.yaml [key=value ...]
+      run a config (seed=, out_dir= and tiny=true are always accepted; values are YAML,
+      e.g. methods=[dtw,robust]); results go to out_dir (metrics.json, timings.json, ...)
+  python -m experiments list
+      the experiments, their config files and every field (type, range, default, meaning)
+  python -m experiments demo [--bvh FILE] [--seed N] [--out-dir DIR]
+      the time-alignment demo on a bundled motion
+
+Bad input (a config mistake, an unknown key, a value out of range, a missing file) prints
+one line, "error: ...", to stderr and exits with status 2; --debug shows the traceback too.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
+import textwrap
 from pathlib import Path
 
-from experiments.config import ConfigError, ExperimentSkipped, parse_overrides
+from experiments.config import ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
 from experiments.runtime import retain_freed_memory
+from motion.cli import Parser, UsageError, add_debug, run
+from motion.settings import describe
+
+__all__ = ["experiments_help", "main"]
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+def _registry():
+    from experiments.runner import CONFIGS, EXPERIMENTS
+
+    return CONFIGS, EXPERIMENTS
+
+
+def _configs_of(name: str) -> list[str]:
+    configs, _ = _registry()
+    return [
+        f"experiments/configs/{p.name}"
+        for p in sorted(configs.glob("*.yaml"))
+        if f"experiment: {name}" in p.read_text()
+    ]
+
+
+def experiments_help(details: bool = False) -> str:
+    """The experiments and their fields: names only, or (``details``) each field's default,
+    type, range and meaning."""
+    _, experiments = _registry()
+    lines = ["experiments (python -m experiments list: every field's type, range and meaning):"]
+    for name, exp in experiments.items():
+        configs = ", ".join(_configs_of(name)) or "no shipped config"
+        lines.append(f"{name} ({configs}; schema {exp.schema.__name__}):")
+        if details:
+            lines += describe(exp.schema, text_syntax=False)
+            if exp.schema.TINY:
+                tiny = ", ".join(f"{k}={v}" for k, v in exp.schema.TINY.items())
+                lines.append(f"  tiny=true sets: {tiny} (command-line values win)")
+        else:
+            fields = ", ".join(f.name for f in dataclasses.fields(exp.schema))
+            lines += textwrap.wrap(fields, 96, initial_indent="  ", subsequent_indent="  ")
+    return "\n".join(lines)
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0; got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0; got {value}")
+    return value
+
+
+def _parser() -> Parser:
+    parser = Parser(prog="python -m experiments", description=__doc__, epilog=experiments_help())
+    add_debug(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,list,demo}")
+    run_p = sub.add_parser(
+        "run",
+        help="run a YAML config (see experiments/README.md)",
+        description="Run a YAML config with key=value overrides (YAML values).",
+        epilog=experiments_help(),
+    )
+    add_debug(run_p, top=False)
+    run_p.add_argument("config", type=Path, help="a config file, e.g. experiments/configs/...")
+    run_p.add_argument(
+        "overrides", nargs="*", default=[], help="key=value settings (fields of the schema)"
+    )
+    list_p = sub.add_parser("list", help="list the experiments and their fields")
+    add_debug(list_p, top=False)
     demo = sub.add_parser(
         "demo", help="time-align a bundled motion against a warped, corrupted copy"
     )
+    add_debug(demo, top=False)
     demo.add_argument("--bvh", type=Path, default=BUNDLED_BVH, help="reference BVH file")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--out-dir", type=Path, default=Path("runs/demo"))
-    run = sub.add_parser("run", help="run a YAML config (see experiments/README.md)")
-    run.add_argument("config", type=Path)
-    run.add_argument("overrides", nargs="*", help="key=value settings")
-    args = parser.parse_args(argv)
-    retain_freed_memory()  # a process-wide allocator setting: see experiments/runtime.py
+    demo.add_argument("--seed", type=_seed, default=0, help="seed (an integer >= 0)")
+    demo.add_argument("--out-dir", type=Path, default=Path("runs/demo"), help="output folder")
+    return parser
 
-    if args.command == "run":
-        from experiments.runner import run_config
 
-        try:
-            metrics = run_config(args.config, parse_overrides(args.overrides))
-        except ExperimentSkipped as why:
-            print(f"skipped: {why}")
-            return 0
-        except (ConfigError, OSError, ValueError) as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 1
-        width = max(len(k) for k in metrics)
-        for key, value in sorted(metrics.items()):
-            print(f"{key:<{width}}  {value:.4g}")
+def _run(args: argparse.Namespace) -> int:
+    from experiments.runner import run_config
+
+    try:
+        metrics = run_config(args.config, parse_overrides(args.overrides))
+    except ExperimentSkipped as why:
+        print(f"skipped: {why}")
         return 0
-
-    if args.command == "demo":
-        if not args.bvh.is_file():
-            parser.error(f"--bvh: no such file: {args.bvh}")
-        m = run_demo(args.bvh, args.out_dir, args.seed)
-        print(
-            f"reference {args.bvh.name}: {m['num_ref']} frames at 120 Hz; "
-            f"input {m['num_video']} frames at 25 fps, a stretch replaced by later frames"
-        )
-        print("mean |C - C_true| in reference frames (lower is better)")
-        print(f"{'method':<22}{'all':>8}{'outside':>10}{'inside':>9}{'seconds':>10}")
-        for key, label in [
-            ("dtw", "proposal DTW (Eq. 26)"),
-            ("chain", "chain Viterbi"),
-            ("robust", "robust chain"),
-        ]:
-            print(
-                f"{label:<22}{m[f'c_err_mean_{key}']:>8.2f}{m[f'c_err_outside_mean_{key}']:>10.2f}"
-                f"{m[f'c_err_inside_mean_{key}']:>9.2f}{m[f'seconds_{key}']:>10.4f}"
-            )
-        print(f"wrote {args.out_dir / 'metrics.json'} and {args.out_dir / 'alignment.png'}")
+    width = max(len(k) for k in metrics)
+    for key, value in sorted(metrics.items()):
+        print(f"{key:<{width}}  {value:.4g}")
     return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    if not args.bvh.is_file():
+        raise UsageError(f"--bvh: expected an existing BVH file; got {str(args.bvh)!r}")
+    m = run_demo(args.bvh, args.out_dir, args.seed)
+    print(
+        f"reference {args.bvh.name}: {m['num_ref']} frames at 120 Hz; "
+        f"input {m['num_video']} frames at 25 fps, a stretch replaced by later frames"
+    )
+    print("mean |C - C_true| in reference frames (lower is better)")
+    print(f"{'method':<22}{'all':>8}{'outside':>10}{'inside':>9}{'seconds':>10}")
+    for key, label in [
+        ("dtw", "proposal DTW (Eq. 26)"),
+        ("chain", "chain Viterbi"),
+        ("robust", "robust chain"),
+    ]:
+        print(
+            f"{label:<22}{m[f'c_err_mean_{key}']:>8.2f}{m[f'c_err_outside_mean_{key}']:>10.2f}"
+            f"{m[f'c_err_inside_mean_{key}']:>9.2f}{m[f'seconds_{key}']:>10.4f}"
+        )
+    written = ", ".join(str(args.out_dir / f) for f in ("metrics.json", "timings.json"))
+    print(f"wrote {written} and {args.out_dir / 'alignment.png'}")
+    return 0
+
+
+def _command(args: argparse.Namespace) -> int:
+    if args.command == "list":
+        print(experiments_help(details=True))
+        return 0
+    retain_freed_memory()  # a process-wide allocator setting: see experiments/runtime.py
+    return _run(args) if args.command == "run" else _demo(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line (``argv`` without the program name); returns the exit status."""
+    return run(_parser(), argv, _command)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ over all frames (``motion.pose.solve_pose``: weak-perspective/DLT starts, LM) an
 with the shipped calibration. (2) The reference is time-warped by a known smooth warp and
 upsampled to ``reference_rate``; C of every input frame is recovered by chain alignment on
 ``d(t', t)`` = mean reprojection error over cameras and joints (the recovered cameras fixed).
-Needs ``../shared/data``; the runner reports a clear message when it is absent.
+Needs ``../shared/data``: skipped with a message when that default location is absent; a
+``data`` folder the user names must hold the trial (else a ConfigError).
 """
 
 from __future__ import annotations
@@ -18,38 +19,65 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from experiments.config import ExperimentSkipped
+from experiments.config import ConfigError, ExperimentConfig, ExperimentSkipped
 from motion.alignment import chain_align, robust_cost
 from motion.cameras import CameraRig, load_pose2sim_calibration
 from motion.keypoints import BODY_25B, read_openpose_folder, read_trc
 from motion.pose import solve_pose
+from motion.settings import setting
 from motion.synth import time_warp
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 @dataclass
-class Pose2simRealConfig:
+class Pose2simRealConfig(ExperimentConfig):
     """Fields of ``experiments/configs/pose2sim_real.yaml``."""
 
-    data: str = str(SHARED)
-    reference_rate: float = 120.0  # the warped reference is resampled to this rate (Hz)
-    warp: float = 0.3
-    min_confidence: float = 0.3
-    max_step: int = 6
-    seed: int = 0
-    out_dir: str = "runs/pose2sim_real"
-    tiny: bool = False
+    data: str = setting(
+        str(SHARED),
+        "the shared data folder (default: ../shared/data beside the checkout; the run is "
+        "skipped when that default is absent, a named folder must exist)",
+    )
+    reference_rate: float = setting(
+        120.0, "the warped reference is resampled to this rate (Hz)", gt=0, le=10000
+    )
+    warp: float = setting(0.3, "largest relative change of playback speed", ge=0, lt=1)
+    min_confidence: float = setting(
+        0.3, "2-D detections below this confidence are ignored", ge=0, lt=1
+    )
+    max_step: int = setting(6, "S: most reference frames C advances per input frame", ge=1)
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    out_dir: str = setting("runs/pose2sim_real", "output folder")
+    tiny: bool = setting(False, "the first 40 frames only, for tests")
+
+
+#: the files the run reads, relative to ``data``
+CALIBRATION = Path("video/pose2sim_balancing_trial/calibration/Calib_qualisys.toml")
+TRIAL = Path("keypoints/pose2sim_balancing_trial")
+
+
+def _data_root(cfg: Pose2simRealConfig) -> Path:
+    """The data folder: absent at the default location -> :class:`ExperimentSkipped` (the
+    test suite without ../shared/data); a named folder without the trial -> ConfigError."""
+    root = Path(cfg.data)
+    if (root / CALIBRATION).is_file():
+        return root
+    if root.resolve() == SHARED.resolve():
+        raise ExperimentSkipped(
+            f"pose2sim_real needs the shared data set ({root / CALIBRATION} is missing)"
+        )
+    what = "no such folder" if not root.is_dir() else f"it has no {CALIBRATION}"
+    raise ConfigError(
+        f"data={cfg.data}: expected the shared data folder (with {CALIBRATION} and {TRIAL}); "
+        f"got {what}"
+    )
 
 
 def run(cfg: Pose2simRealConfig):
-    root = Path(cfg.data)
-    trial = root / "keypoints" / "pose2sim_balancing_trial"
-    calib_path = root / "video" / "pose2sim_balancing_trial" / "calibration" / "Calib_qualisys.toml"
-    if not calib_path.exists():
-        raise ExperimentSkipped(
-            f"pose2sim_real needs the shared data set ({calib_path} is missing)"
-        )
+    root = _data_root(cfg)
+    trial = root / TRIAL
+    calib_path = root / CALIBRATION
     calib = load_pose2sim_calibration(calib_path)
     markers = read_trc(trial / "pose3d" / "S00_P00_T01_BalancingTrial_0-100.trc")
     world = torch.from_numpy(markers.positions)[..., [2, 0, 1]]  # TRC (Y up) -> calibration world
@@ -107,6 +135,13 @@ def run(cfg: Pose2simRealConfig):
     g = torch.Generator().manual_seed(cfg.seed)
     num_video = frames
     num_ref = round((frames - 1) * cfg.reference_rate / markers.rate) + 1
+    need = math.ceil((num_ref - 1) / max(num_video - 1, 1))
+    if cfg.max_step < need:
+        raise ConfigError(
+            f"max_step={cfg.max_step}: {num_video} input frames cannot reach the last of "
+            f"{num_ref} reference frames in steps of at most {cfg.max_step}; expected "
+            f"max_step >= {need} (raise max_step, or lower reference_rate)"
+        )
     c_true = time_warp(num_video, num_ref, cfg.warp, g)  # video frame -> reference frame
     # reference frame r shows the pose of video time s(r): invert the warp by interpolation
     s_of_r = np.interp(np.arange(num_ref), c_true.numpy(), np.arange(num_video))

@@ -12,38 +12,67 @@ figure height). Throughput of both on ``throughput_poses`` poses, same run.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from experiments.config import ConfigError
+from experiments.config import ConfigError, ExperimentConfig
+from experiments.progress import progress
 from experiments.stick_time import BUNDLED, _reference_landmarks
 from motion.kinematics import matrix_to_euler
 from motion.metrics import position_error, registration_error, rotation_error_deg
 from motion.pose import solve_pose
+from motion.settings import setting
 
 K = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
 CAMERAS = ("perspective", "orthographic")
 LEVELS = {"n0": 0.0, "n18": 0.018, "n36": 0.036}
 
 
+#: metrics that are timings: written to timings.json, apart from the accuracy figures
+TIMINGS = ("poses_per_s", "poses_per_s_1thread", "opencv_poses_per_s")
+
+
 @dataclass
-class StickPoseConfig:
+class StickPoseConfig(ExperimentConfig):
     """Fields of ``experiments/configs/stick_pose.yaml``."""
 
-    bvh: str = BUNDLED
-    frames: int = 82
-    camera_distance: float = 5.0
-    camera: str = "perspective"
-    sweep_noise: list = field(default_factory=lambda: [0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
-    throughput_poses: int = 10000
-    throughput_rounds: int = 5
-    seed: int = 0
-    out_dir: str = "runs/stick_pose"
-    tiny: bool = False
+    TINY: ClassVar[dict] = {
+        "frames": 12,
+        "throughput_poses": 200,
+        "throughput_rounds": 1,
+        "sweep_noise": [0.0, 0.036],
+    }
+
+    bvh: str = setting(BUNDLED, "BVH file whose frames give the stick figures", path="file")
+    frames: int = setting(82, "frames taken evenly from the BVH (at most its length)", ge=1)
+    camera_distance: float = setting(
+        5.0, "distance of the figures from the camera, metres", gt=0, le=1000
+    )
+    camera: str = setting(
+        "perspective", "camera model (orthographic: ours only, no OpenCV)", choices=CAMERAS
+    )
+    sweep_noise: list[float] = setting(
+        [0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06],
+        "noise levels of the sweep (fractions of the 2-D figure height)",
+        ge=0,
+        le=1,
+    )
+    throughput_poses: int = setting(10000, "poses solved per throughput round", ge=1)
+    throughput_rounds: int = setting(
+        5, "throughput rounds (best of, interleaved with OpenCV's)", ge=1
+    )
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    out_dir: str = setting("runs/stick_pose", "output folder")
+    tiny: bool = setting(
+        False,
+        "a quick run: frames=12, throughput_poses=200, throughput_rounds=1, "
+        "sweep_noise=[0, 0.036] (values given on the command line win)",
+    )
 
 
 def _intrinsics(cfg: StickPoseConfig) -> torch.Tensor:
@@ -63,6 +92,10 @@ def _project(pc: torch.Tensor, k: torch.Tensor, orthographic: bool) -> torch.Ten
 
 def _problems(cfg: StickPoseConfig, g: torch.Generator):
     ref, _ = _reference_landmarks(cfg.bvh)
+    if cfg.frames > len(ref):
+        raise ConfigError(
+            f"frames={cfg.frames}: {cfg.bvh} has {len(ref)} frames; expected at most {len(ref)}"
+        )
     step = max(1, len(ref) // cfg.frames)
     x3 = ref[::step][: cfg.frames]
     x3 = x3 - x3.mean(1, keepdim=True)
@@ -73,6 +106,12 @@ def _problems(cfg: StickPoseConfig, g: torch.Generator):
         b, 3, generator=g, dtype=torch.float64
     )
     pc = x3 @ r.transpose(1, 2) + t[:, None]
+    nearest = float(pc[..., 2].min())
+    if cfg.camera == "perspective" and nearest <= 1e-3:  # orthographic sees any depth
+        raise ConfigError(
+            f"camera_distance={cfg.camera_distance:g}: landmarks reach depth {nearest:.2f} m "
+            "from the camera; expected every landmark in front of it (raise camera_distance)"
+        )
     ortho = cfg.camera == "orthographic"
     if ortho:  # the depth is unobservable: the solver returns t_z = 0
         t[:, 2] = 0
@@ -106,19 +145,7 @@ def _errors(x3, r_true, t_true, obs, r_est, t_est, h2d, h3d, k=K, orthographic=F
 
 
 def run(cfg: StickPoseConfig):
-    if cfg.camera not in CAMERAS:
-        raise ConfigError(f"stick_pose: camera must be one of {CAMERAS}; got {cfg.camera!r}")
     g = torch.Generator().manual_seed(cfg.seed)
-    if cfg.tiny:
-        cfg = StickPoseConfig(
-            **{
-                **cfg.__dict__,
-                "frames": 12,
-                "throughput_poses": 200,
-                "throughput_rounds": 1,
-                "sweep_noise": [0.0, 0.036],
-            }
-        )
     ortho = cfg.camera == "orthographic"
     k = _intrinsics(cfg)
     x3, r, t, uv = _problems(cfg, g)
@@ -174,7 +201,7 @@ def run(cfg: StickPoseConfig):
     if not ortho:
         _opencv(big3[:20], big2[:20])
     ours, theirs, single = [], [], []
-    for _ in range(cfg.throughput_rounds):
+    for _ in progress(range(cfg.throughput_rounds), "stick_pose: throughput rounds"):
         ours.append(_seconds(lambda: solve(big3, big2)))
         if not ortho:
             theirs.append(_seconds(lambda: _opencv(big3[:m], big2[:m])))

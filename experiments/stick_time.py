@@ -12,46 +12,72 @@ DTW, chain Viterbi, and the robust chain (bounded cost, slope prior).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from experiments.config import ConfigError, ExperimentConfig
+from experiments.progress import progress
 from motion.alignment import chain_align, coarse_to_fine_align, dtw, robust_cost, slope_step_cost
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.pose import solve_pose
+from motion.settings import setting
 from motion.synth import time_warp
 
 BUNDLED = "motion/data/cmu_02_01_walk.bvh"
 
 
+#: the aligners, by the suffix of their metric names
+METHODS = ("dtw", "chain", "robust", "c2f", "c2f_robust")
+FULL_MATRIX_METHODS = ("dtw", "chain", "robust")
+
+
 @dataclass
-class StickTimeConfig:
+class StickTimeConfig(ExperimentConfig):
     """Fields of ``experiments/configs/stick_time.yaml`` (see experiments/README.md)."""
 
-    bvh: str = BUNDLED
-    fps: float = 25.0  # input frame rate (the reference's is read from the BVH)
-    warp: float = 0.3  # largest relative change of playback speed
-    noise: float = 0.018  # uniform 2-D joint noise, fraction of the 2-D figure height
-    corrupt: bool = True
-    camera_distance: float = 5.0
-    max_step: int = 12
-    robust_scale: float = 2.0  # truncation at this many times the median best-match cost
-    slope_weight: float = 0.5  # slope prior weight, in units of the truncation level
+    bvh: str = setting(BUNDLED, "reference BVH file (120 Hz motion capture)", path="file")
+    fps: float = setting(
+        25.0, "input frame rate in Hz (the reference's is read from the BVH)", gt=0, le=1000
+    )
+    warp: float = setting(0.3, "largest relative change of playback speed", ge=0, lt=1)
+    noise: float = setting(
+        0.018, "uniform 2-D joint noise, a fraction of the 2-D figure height", ge=0, le=1
+    )
+    corrupt: bool = setting(True, "replace input frames 40-50 % by the frames after them")
+    camera_distance: float = setting(
+        5.0, "camera distance from the figure's centre, metres", gt=0, le=1000
+    )
+    max_step: int = setting(12, "S: most reference frames C advances per input frame", ge=1)
+    robust_scale: float = setting(
+        2.0, "truncation at this many times the median best-match cost", gt=0
+    )
+    slope_weight: float = setting(0.5, "slope prior weight, in units of the truncation level", ge=0)
     # The camera does not move: after a first robust alignment on Eq. 24, one camera pose is
     # fitted to the matched inlier pairs and the chain methods run on the costs under it
     # (the proposal's DTW always runs on Eq. 24's per-pair poses, as published).
-    static_camera: bool = True
-    seed: int = 0
-    out_dir: str = "runs/stick_time"
-    tiny: bool = False
-    # dtw, chain, robust (full cost matrix); c2f and c2f_robust (the chain and the robust
-    # chain coarse-to-fine: Eq. 24 evaluated on demand inside a band, for long sequences)
-    methods: list = field(default_factory=lambda: ["dtw", "chain", "robust"])
-    full_matrix_max_cells: int = 5_000_000
-    c2f_max_cells: int = 200_000
+    static_camera: bool = setting(
+        True, "fit one camera pose to a first robust alignment's inliers (chain methods)"
+    )
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    out_dir: str = setting("runs/stick_time", "output folder")
+    tiny: bool = setting(False, "a few frames (the first 120 reference frames), for tests")
+    methods: list[str] = setting(
+        ["dtw", "chain", "robust"],
+        "aligners: dtw, chain, robust on the full cost matrix; c2f and c2f_robust: the chain "
+        "and the robust chain coarse-to-fine (Eq. 24 evaluated on demand in a band)",
+        choices=METHODS,
+        min_length=1,
+    )
+    full_matrix_max_cells: int = setting(
+        5_000_000, "refuse the full cost matrix beyond this many cells (use c2f)", ge=1
+    )
+    c2f_max_cells: int = setting(
+        200_000, "coarse-to-fine: solve directly once a level has at most this many cells", ge=1
+    )
 
 
 def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
@@ -64,6 +90,35 @@ def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
     return landmarks - landmarks[:, :1].mean(0, keepdim=True), bvh.frame_rate
 
 
+def _check_lengths(cfg: StickTimeConfig, num_video: int, num_ref: int, ref_rate: float) -> None:
+    """Settings the sequence lengths must allow: enough input frames for the replaced
+    stretch, and steps of at most ``max_step`` that can reach the last reference frame."""
+    least = 10 if cfg.corrupt else 2
+    if num_video < least:
+        why = " (for the replaced frames 40-50 %)" if cfg.corrupt else ""
+        raise ConfigError(
+            f"fps={cfg.fps:g}: {num_video} input frame(s) from {num_ref} reference frames at "
+            f"{ref_rate:g} Hz; expected at least {least}{why}: raise fps"
+        )
+    need = math.ceil((num_ref - 1) / (num_video - 1))
+    if cfg.max_step < need:
+        raise ConfigError(
+            f"max_step={cfg.max_step}: {num_video} input frames cannot reach the last of "
+            f"{num_ref} reference frames in steps of at most {cfg.max_step}; expected "
+            f"max_step >= {need} (raise max_step or fps)"
+        )
+
+
+def _check_in_front(points: torch.Tensor, distance: float) -> None:
+    """Every landmark (camera coordinates ``(..., 3)``, metres) must be in front of the camera."""
+    nearest = float(points[..., 2].min())
+    if nearest <= 1e-3:
+        raise ConfigError(
+            f"camera_distance={distance:g}: landmarks reach depth {nearest:.2f} m from the "
+            "camera; expected every landmark in front of it (raise camera_distance)"
+        )
+
+
 def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
     """Returns (metrics, per-frame columns, plot data)."""
     g = torch.Generator().manual_seed(cfg.seed)
@@ -72,6 +127,7 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
         ref = ref[: min(len(ref), 120)]
     num_ref = ref.shape[0]
     num_video = int((num_ref - 1) * cfg.fps / ref_rate) + 1
+    _check_lengths(cfg, num_video, num_ref, ref_rate)
     c_true = time_warp(num_video, num_ref, cfg.warp, g)
     shown = c_true.clone()
     inside = torch.zeros(num_video, dtype=torch.bool)
@@ -88,6 +144,7 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
     t = torch.tensor([0.0, 0.0, cfg.camera_distance], dtype=torch.float64)
     k = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
     pc = ref[shown] @ rot.T + t
+    _check_in_front(pc, cfg.camera_distance)
     x2 = pc[..., :2] / pc[..., 2:] * 800 + torch.tensor([320.0, 240.0], dtype=torch.float64)
     height = float((x2[..., 1].amax(-1) - x2[..., 1].amin(-1)).median())
     x2 = x2 + (torch.rand(x2.shape, generator=g, dtype=torch.float64) * 2 - 1) * cfg.noise * height
@@ -100,16 +157,17 @@ def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
         return (res.cost / height**2).reshape(cols.shape)
 
     estimates = {}
-    full_methods = [m for m in cfg.methods if m in ("dtw", "chain", "robust")]
+    full_methods = [m for m in cfg.methods if m in FULL_MATRIX_METHODS]
     if full_methods:
         if num_video * num_ref > cfg.full_matrix_max_cells:
-            raise ValueError(
-                f"{num_video} x {num_ref} cells exceed full_matrix_max_cells={cfg.full_matrix_max_cells}: "
+            raise ConfigError(
+                f"full_matrix_max_cells={cfg.full_matrix_max_cells}: the full cost matrix has "
+                f"{num_video} x {num_ref} cells, more than that: "
                 "use methods=[c2f] for long sequences (coarse-to-fine, no full matrix)"
             )
         # Eq. 24 for every (t', t): one batched pose solve per video frame against all references
         cost = torch.empty(num_video, num_ref, dtype=torch.float64)
-        for i in range(num_video):
+        for i in progress(range(num_video), "stick_time: cost matrix rows"):
             res = solve_pose(ref, x2[i].expand(num_ref, n, 2), k)
             cost[i] = res.cost / height**2
     slope = (num_ref - 1) / max(num_video - 1, 1)

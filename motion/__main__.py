@@ -1,27 +1,53 @@
-"""Command line.
+"""Command line of the motion package.
 
-``python -m motion info FILE.bvh [--spec SPEC]``: describe a BVH file.
-``python -m motion synth --reference REF.bvh [--student OTHER.bvh] [key=value ...] --out DIR``:
-write a synthetic sequence; keys are :class:`motion.synth.SynthConfig` fields, e.g.
-``fps=30 cameras=2 noise_px=2 replace=0.4,0.5 articulation=LeftLeg:20,RightArm:30
-size=320x240 videos=true seed=1``.
+  python -m motion info FILE.bvh [--spec SPEC]
+      describe a BVH file: rate, duration, units, skeleton and the body-part mapping
+  python -m motion synth --reference REF.bvh [--student OTHER.bvh] --out DIR [key=value ...]
+      write a synthetic sequence with its ground truth, e.g.
+      fps=30 cameras=2 noise_px=2 replace=0.4,0.5 articulation=LeftLeg:20,RightArm:30
+      size=320x240 videos=true seed=1  (python -m motion synth --help lists every setting)
 
-Exits non-zero with a one-line reason on bad input.
+Bad input prints one line, "error: ...", to stderr and exits with status 2; --debug shows
+the traceback as well.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 from pathlib import Path
 
 from motion.bodyparts import BodyModel, BodyPartMappingError
-from motion.bvh import BVHError, read_bvh
-from motion.kinematics import Skeleton, SkeletonError
-from motion.synth import SynthConfig, save_sequence, synthesize
+from motion.bvh import read_bvh
+from motion.cli import Parser, add_debug, run
+from motion.kinematics import Skeleton
+from motion.settings import describe
+from motion.synth import SynthConfig, save_sequence, sequence_files, synthesize
+
+__all__ = ["info", "main", "parse_overrides"]
+
+
+def _body_lines(model: BodyModel) -> list[str]:
+    """The body-part mapping explained: parts are capsules between two landmark roles;
+    each role is the mean of the joints (or end sites) listed."""
+    ends = model.part_roles.tolist()
+    lines = [
+        f"body parts: all {model.num_parts} mapped; each part is a capsule between two of "
+        f"{len(model.roles)} landmark roles, and each role is placed at the mean of the "
+        "joints (NAME.end: a joint's end site) listed under it",
+        f"  parts ({model.num_parts}: from role -> to role):",
+    ]
+    for name, (a, b) in zip(model.part_names, ends, strict=True):
+        lines.append(f"    {name}: {model.roles[a]} -> {model.roles[b]}")
+    lines.append(f"  landmark roles ({len(model.roles)}: role: joints):")
+    for role in model.roles:
+        lines.append(f"    {role}: {' + '.join(model.mapping[role])}")
+    return lines
 
 
 def info(path: Path, spec: str | None) -> str:
+    """A description of the BVH file at ``path`` (``spec``: a body-part spec to map with)."""
     bvh = read_bvh(path)
     skel = Skeleton.from_bvh(bvh)
     lines = [
@@ -36,72 +62,88 @@ def info(path: Path, spec: str | None) -> str:
         parent = skel.names[skel.parents[j]] if skel.parents[j] >= 0 else "-"
         lines.append(f"  {j:3d} {name} <- {parent}: {' '.join(bvh.channels[j]) or '(none)'}")
     try:
-        model = BodyModel.from_skeleton(skel, spec)
-        lines.append(f"body parts: all {model.num_parts} mapped")
-        for role in model.roles:
-            lines.append(f"  {role}: {' + '.join(model.mapping[role])}")
+        lines += _body_lines(BodyModel.from_skeleton(skel, spec))
     except BodyPartMappingError as err:
         lines.append(f"body parts: NOT all mapped: {err}")
     return "\n".join(lines)
 
 
 def parse_overrides(items: list[str]) -> SynthConfig:
-    """``key=value`` strings -> :class:`SynthConfig` (unknown keys and bad values fail)."""
-    cfg = SynthConfig()
-    fields = SynthConfig.__dataclass_fields__
-    for item in items:
-        if "=" not in item:
-            raise ValueError(f"expected key=value, got {item!r}")
-        key, value = item.split("=", 1)
-        if key not in fields:
-            raise ValueError(f"unknown setting {key!r}; known: {', '.join(fields)}")
-        current = getattr(cfg, key)
-        if key == "articulation":
-            parsed = {k: float(v) for k, v in (p.split(":") for p in value.split(",") if p)}
-        elif key == "size":
-            parsed = [int(v) for v in value.lower().split("x")]
-        elif key in ("path_m", "replace"):
-            parsed = None if value.lower() == "none" else [float(v) for v in value.split(",")]
-        elif isinstance(current, bool):
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(f"{key} must be true or false; got {value!r}")
-            parsed = value.lower() in ("true", "1")
-        elif key == "camera_distance_m":
-            parsed = None if value.lower() == "none" else float(value)
-        else:
-            parsed = type(current)(value)
-        setattr(cfg, key, parsed)
-    cfg.validate()
-    return cfg
+    """``key=value`` strings -> a checked :class:`SynthConfig` (see
+    :meth:`SynthConfig.from_assignments`)."""
+    return SynthConfig.from_assignments(items)
+
+
+def _synth_epilog() -> str:
+    return "\n".join(
+        [
+            "settings (key=value; lists separated by commas, size as WIDTHxHEIGHT, "
+            "articulation as JOINT:DEGREES pairs):",
+            *describe(SynthConfig),
+        ]
+    )
+
+
+def _parser() -> Parser:
+    parser = Parser(prog="python -m motion", description=__doc__)
+    add_debug(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,synth}")
+    p_info = sub.add_parser(
+        "info",
+        help="describe a BVH file: skeleton, rate, units, body parts",
+        description=textwrap.fill(
+            "Describe a BVH file: rate, duration, units, skeleton (joint <- parent: channels) "
+            "and how its joints map to the body model's parts and landmark roles.",
+            88,
+        ),
+    )
+    add_debug(p_info, top=False)
+    p_info.add_argument("file", type=Path, help="the BVH file")
+    p_info.add_argument(
+        "--spec", default=None, help="body-part spec file, or a bundled name (cmu_cgspeed, ...)"
+    )
+    p_synth = sub.add_parser(
+        "synth",
+        help="render a synthetic student sequence with ground truth",
+        description=textwrap.fill(
+            "Render a synthetic student sequence from a reference BVH: time warp, articulation "
+            "offsets, path, body size, cameras, silhouettes, part labels, edges, intensity "
+            "frames and 2-D joints, saved as DIR/sequence.npz + DIR/sequence.json (and "
+            "DIR/camN.avi with videos=true).",
+            88,
+        ),
+        epilog=_synth_epilog(),
+    )
+    add_debug(p_synth, top=False)
+    p_synth.add_argument("--reference", type=Path, required=True, help="reference BVH file")
+    p_synth.add_argument(
+        "--student", type=Path, default=None, help="another performer's BVH (then no true C)"
+    )
+    p_synth.add_argument("--out", type=Path, required=True, help="output folder")
+    p_synth.add_argument(
+        "overrides", nargs="*", default=[], help="key=value settings (listed below)"
+    )
+    return parser
+
+
+def _command(args: argparse.Namespace) -> int:
+    if args.command == "info":
+        print(info(args.file, args.spec))
+        return 0
+    cfg = parse_overrides(args.overrides)
+    seq = synthesize(args.reference, cfg, args.student)
+    out = save_sequence(seq, args.out)
+    files = sequence_files(seq.meta, out)
+    print(
+        f"wrote {seq.meta['num_video_frames']} frames from {len(seq.meta['cameras'])} "
+        f"camera(s): {', '.join(str(f) for f in files)}"
+    )
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m motion", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    p_info = sub.add_parser("info", help="describe a BVH file: skeleton, rate, units, body parts")
-    p_info.add_argument("file", type=Path)
-    p_info.add_argument("--spec", default=None, help="body-part spec file or bundled name")
-    p_synth = sub.add_parser("synth", help="render a synthetic student sequence with ground truth")
-    p_synth.add_argument("--reference", type=Path, required=True)
-    p_synth.add_argument("--student", type=Path, default=None)
-    p_synth.add_argument("--out", type=Path, required=True)
-    p_synth.add_argument("overrides", nargs="*", help="key=value settings (SynthConfig fields)")
-    args = parser.parse_args(argv)
-    try:
-        if args.command == "info":
-            print(info(args.file, args.spec))
-        elif args.command == "synth":
-            cfg = parse_overrides(args.overrides)
-            seq = synthesize(args.reference, cfg, args.student)
-            out = save_sequence(seq, args.out)
-            print(
-                f"wrote {out / 'sequence.npz'} ({seq.meta['num_video_frames']} frames, "
-                f"{len(seq.meta['cameras'])} cameras) and {out / 'sequence.json'}"
-            )
-    except (OSError, ValueError, KeyError, BVHError, SkeletonError, BodyPartMappingError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
-    return 0
+    """Run the command line (``argv`` without the program name); returns the exit status."""
+    return run(_parser(), argv, _command)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Synthetic "student" sequences with ground truth, rendered from a reference BVH.
 
-Every parameter lives in :class:`SynthConfig` (documented field by field). The generator
+Every parameter lives in :class:`SynthConfig` (type, range and meaning declared per field). The generator
 resamples the reference (120 Hz) to the video rate through a smooth non-linear monotone time
 warp C, adds smooth articulation offsets A on chosen joints, moves the body along a global
 path T (yaw and translation), scales the body (G), and renders every camera: silhouettes,
@@ -14,10 +14,12 @@ parameters). Units: metres, radians inside; the stored articulation A is in degr
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -35,69 +37,133 @@ from motion.kinematics import (
     local_rotations,
 )
 from motion.render import ProjectedParts, label_map, project_parts
+from motion.settings import SettingError, Settings, echo, from_text, setting, show
 
-__all__ = ["Sequence", "SynthConfig", "load_sequence", "save_sequence", "synthesize", "time_warp"]
+__all__ = [
+    "Sequence",
+    "SynthConfig",
+    "SynthConfigError",
+    "load_sequence",
+    "save_sequence",
+    "sequence_files",
+    "synthesize",
+    "time_warp",
+]
+
+
+class SynthConfigError(SettingError):
+    """A synthetic-sequence setting outside its type or range, or one the reference cannot
+    satisfy (an unknown joint, too short a video for the replaced stretch)."""
 
 
 @dataclass
-class SynthConfig:
-    """Parameters of a synthetic sequence (all have defaults).
+class SynthConfig(Settings):
+    """Parameters of a synthetic sequence: every field has a default, a declared range and a
+    meaning (``python -m motion synth --help`` lists them). Checked at construction and by
+    :meth:`validate`; a bad value raises :class:`SynthConfigError` naming the field, what it
+    must be and what it was."""
 
-    Attributes:
-        fps: video frame rate (the reference's rate is read from its file).
-        warp: largest relative change of playback speed along the smooth non-linear time
-            warp, in [0, 1) (0 = uniform resampling); C stays monotone.
-        articulation: ``{joint name: max offset in degrees}``; each gets a smooth offset
-            on all three axes, up to that amplitude (<= 30 recommended).
-        yaw_deg: total rotation of the body about the vertical over the sequence.
-        path_m: ``[x, y, z]`` translation added linearly over the sequence (metres).
-        body_scale: G, multiplies bone lengths and part radii.
-        cameras: number of static cameras, evenly spaced on a circle around the body.
-        camera_distance_m, camera_height_m, focal_px: camera placement and intrinsics
-            (distance ``None``: 2.5 m beyond the farthest the root gets from its mean).
-        size: image ``[width, height]`` in pixels.
-        noise_px: std of the Gaussian noise on the noisy 2-D joints.
-        replace: ``[start, end]`` fractions of the video whose frames are replaced by the
-            frames that follow them (the proposal's corruption), or ``None``.
-        drop_reference_pose: drop frame 0 when it is a converter's reference pose.
-        videos: also write one video per camera (intensity frames).
-        seed: every random draw.
-    """
+    setting_error: ClassVar[type[SettingError]] = SynthConfigError
 
-    fps: float = 25.0
-    warp: float = 0.3
-    articulation: dict[str, float] = field(default_factory=dict)
-    yaw_deg: float = 0.0
-    path_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-    body_scale: float = 1.0
-    cameras: int = 1
-    camera_distance_m: float | None = None
-    camera_height_m: float = 1.0
-    focal_px: float = 300.0
-    size: list[int] = field(default_factory=lambda: [160, 120])
-    noise_px: float = 1.0
-    replace: list[float] | None = None
-    drop_reference_pose: bool = True
-    videos: bool = False
-    seed: int = 0
+    fps: float = setting(
+        25.0, "video frame rate in Hz (the reference's rate is read from its file)", gt=0, le=1000
+    )
+    warp: float = setting(
+        0.3,
+        "largest relative change of playback speed along the smooth non-linear time warp "
+        "(0: uniform resampling); C stays monotone",
+        ge=0,
+        lt=1,
+    )
+    articulation: dict[str, float] = setting(
+        {},
+        "joint name -> largest offset in degrees: each named joint gets a smooth offset on all "
+        "three axes, up to that amplitude (30 or less recommended)",
+        ge=0,
+        le=180,
+        example="LeftLeg:20,RightArm:30",
+    )
+    yaw_deg: float = setting(0.0, "total rotation of the body about the vertical, degrees")
+    path_m: list[float] = setting(
+        [0.0, 0.0, 0.0],
+        "x,y,z translation in metres added linearly over the sequence",
+        length=3,
+        example="0.5,0,0",
+    )
+    body_scale: float = setting(
+        1.0, "body size G: multiplies bone lengths and part radii", gt=0, le=10
+    )
+    cameras: int = setting(
+        1, "number of static cameras, evenly spaced on a circle around the body", ge=1, le=64
+    )
+    camera_distance_m: float | None = setting(
+        None,
+        "camera distance from the body's mean root position in metres (none: 2.5 m beyond "
+        "the farthest the root gets from its mean)",
+        gt=0,
+    )
+    camera_height_m: float = setting(1.0, "camera height above the floor, metres")
+    focal_px: float = setting(300.0, "focal length in pixels", gt=0)
+    size: list[int] = setting(
+        [160, 120],
+        "image width x height in pixels",
+        length=2,
+        ge=8,
+        le=4096,
+        sep="x,",
+        example="320x240",
+    )
+    noise_px: float = setting(
+        1.0, "standard deviation of the Gaussian noise on the noisy 2-D joints, pixels", ge=0
+    )
+    replace: list[float] | None = setting(
+        None,
+        "start,end fractions of the video whose frames are replaced by the (end - start) "
+        "that follow them, the proposal's corruption (needs end + (end - start) <= 1); none: "
+        "no corruption",
+        length=2,
+        ge=0,
+        le=1,
+        example="0.4,0.5",
+    )
+    drop_reference_pose: bool = setting(
+        True, "drop frame 0 when it is a converter's reference pose"
+    )
+    videos: bool = setting(False, "also write one video per camera (intensity frames, .avi)")
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
 
     def validate(self) -> None:
-        if not self.fps > 0:
-            raise ValueError(f"fps must be > 0; got {self.fps}")
-        if not 0 <= self.warp < 1:
-            raise ValueError(f"warp must be in [0, 1) to keep C monotone; got {self.warp}")
-        if self.cameras < 1:
-            raise ValueError(f"cameras must be >= 1; got {self.cameras}")
-        if len(self.size) != 2 or min(self.size) < 8:
-            raise ValueError(f"size must be [width, height] >= 8; got {self.size}")
-        if self.replace is not None and not (
-            0 <= self.replace[0] < self.replace[1] <= 0.5 + self.replace[0]
-        ):
-            raise ValueError(
-                f"replace must be [start, end] fractions with start < end; got {self.replace}"
-            )
-        if not self.body_scale > 0:
-            raise ValueError(f"body_scale must be > 0; got {self.body_scale}")
+        """Check every field (types and ranges), then the replaced stretch's bounds."""
+        super().validate()
+        if self.replace is not None:
+            start, end = self.replace
+            if not start < end or end + (end - start) > 1:
+                raise SynthConfigError(
+                    f"SynthConfig: replace must be start,end with start < end and "
+                    f"end + (end - start) <= 1 (the replacing frames follow the stretch); "
+                    f"got {show(self.replace)}"
+                )
+
+    @classmethod
+    def from_assignments(cls, items: list[str], where: str = "synth") -> SynthConfig:
+        """``["fps=30", "size=320x240", ...]`` -> a checked config (see
+        :func:`motion.settings.from_text` for the syntax). Unknown keys, repeated keys and
+        bad values raise :class:`SynthConfigError` naming the setting."""
+        values: dict[str, object] = {}
+        for item in items:
+            key, eq, text = item.partition("=")
+            key = key.strip()
+            if not eq or not key:
+                raise SynthConfigError(
+                    f"{where}: expected a setting as key=value (e.g. fps=30); got {item!r}"
+                )
+            if key in values:
+                raise SynthConfigError(f"{where}: {echo(key)} is given twice")
+            values[key] = from_text(cls, key, text, where, error=SynthConfigError)
+        try:
+            return cls(**values)
+        except SynthConfigError as err:  # a check across fields: say where it came from
+            raise SynthConfigError(str(err).replace("SynthConfig:", f"{where}:", 1)) from None
 
 
 @dataclass
@@ -169,6 +235,11 @@ def synthesize(
         ``joints2d`` (C, T', J, 2) px and ``joints2d_noisy``; ``silhouettes`` (C, T', H, W)
         bool; ``labels`` (C, T', H, W) int8 (-1 background); ``edges`` (C, T', H, W) bool;
         ``frames`` (C, T', H, W, 3) uint8; camera ``K`` (C, 3, 3), ``R`` (C, 3, 3), ``t`` (C, 3).
+
+    Raises:
+        SynthConfigError: a setting the reference cannot satisfy (an articulated joint it
+            does not have, a replaced stretch without frames, joints behind a camera, images
+            beyond :data:`MAX_IMAGE_BYTES`); file errors come from :func:`motion.bvh.read_bvh`.
     """
     cfg = config or SynthConfig()
     cfg.validate()
@@ -179,6 +250,7 @@ def synthesize(
     skel = Skeleton.from_bvh(source)
     num_ref = motion.shape[0]
     num_video = int((num_ref - 1) * cfg.fps / source.frame_rate) + 1
+    _check_against(cfg, skel, num_video, student if student is not None else reference)
 
     # C: smooth non-linear monotone warp from video frames to source frames
     u = torch.linspace(0, 1, num_video, dtype=torch.float64)
@@ -188,9 +260,16 @@ def synthesize(
     if cfg.replace is not None:
         lo, hi = (int(f * num_video) for f in cfg.replace)
         length = hi - lo
+        if length == 0:
+            raise SynthConfigError(
+                f"replace={_text(cfg.replace)} covers no frame of the {num_video}-frame video; "
+                "expected a stretch of at least one frame (raise fps or widen replace)"
+            )
         if hi + length > num_video:
-            raise ValueError(
-                f"replace {cfg.replace} needs {hi + length} frames; the video has {num_video}"
+            raise SynthConfigError(
+                f"replace={_text(cfg.replace)} replaces frames {lo}-{hi - 1} by frames "
+                f"{hi}-{hi + length - 1}; expected them inside the {num_video}-frame video "
+                "(move or narrow replace)"
             )
         shown[lo:hi] = c_true[hi : hi + length]
         replaced[lo:hi] = True
@@ -237,7 +316,8 @@ def synthesize(
         distance = 2.5 + float((pos[..., 0, :] - centre)[..., [0, 2]].norm(dim=-1).max())
     rig = _rig(cfg, centre, distance)
     w, h = cfg.size
-    joints2d, _ = rig.project(pos)  # (T', C, J, 2)
+    joints2d, depth = rig.project(pos)  # (T', C, J, 2), (T', C, J)
+    _check_in_front(depth, skel.names, rig.names, distance)
     joints2d = joints2d.transpose(0, 1)  # (C, T', J, 2)
     noisy = joints2d + cfg.noise_px * torch.randn(joints2d.shape, generator=g, dtype=torch.float64)
 
@@ -297,8 +377,59 @@ def synthesize(
     return Sequence(arrays, meta)
 
 
+#: Largest memory the rendered images of one sequence may take (about 24 bytes per pixel of
+#: every camera's every frame, intermediate fields included); beyond it synthesize refuses.
+MAX_IMAGE_BYTES = 8 << 30
+
+
+def _text(values: list[float]) -> str:
+    return ",".join(f"{v:g}" for v in values)
+
+
+def _check_against(cfg: SynthConfig, skel: Skeleton, num_video: int, source) -> None:
+    """Settings the source motion must satisfy: articulated joints exist; images fit."""
+    for name in cfg.articulation:
+        if name not in skel.names:
+            close = difflib.get_close_matches(name, skel.names, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise SynthConfigError(
+                f"articulation: {source} has no joint {name!r}{hint}; its joints: "
+                f"{', '.join(skel.names)}"
+            )
+    w, h = cfg.size
+    need = 24 * cfg.cameras * num_video * w * h
+    if need > MAX_IMAGE_BYTES:
+        raise SynthConfigError(
+            f"cameras={cfg.cameras} x {num_video} frames x size={w}x{h} would need about "
+            f"{need / 2**30:.1f} GiB of images; expected at most {MAX_IMAGE_BYTES / 2**30:.0f} "
+            "GiB (lower size, cameras or fps)"
+        )
+
+
+def _check_in_front(depth: torch.Tensor, joints: list[str], cameras: list[str], distance) -> None:
+    """Every joint must be in front of every camera (depth ``(T', C, J)`` metres)."""
+    if bool((depth > 1e-3).all()):
+        return
+    t, c, j = (int(i) for i in torch.nonzero(depth <= 1e-3)[0])
+    raise SynthConfigError(
+        f"camera_distance_m={distance:.3g}: joint {joints[j]} is at depth "
+        f"{float(depth[t, c, j]):.2f} m from camera {cameras[c]} in video frame {t}; expected "
+        "every joint in front of every camera (raise camera_distance_m, or lower body_scale)"
+    )
+
+
+def sequence_files(meta: dict, out_dir: str | Path) -> list[Path]:
+    """The files :func:`save_sequence` writes for a sequence with metadata ``meta``."""
+    out = Path(out_dir)
+    files = [out / "sequence.npz", out / "sequence.json"]
+    if meta["config"]["videos"]:
+        files += [out / f"{name}.avi" for name in meta["cameras"]]
+    return files
+
+
 def save_sequence(seq: Sequence, out_dir: str | Path) -> Path:
-    """Write ``sequence.npz`` + ``sequence.json`` (and videos if configured) into ``out_dir``."""
+    """Write ``sequence.npz`` + ``sequence.json`` (and one ``.avi`` per camera if configured)
+    into ``out_dir`` (:func:`sequence_files` lists them); returns ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / "sequence.npz", **seq.arrays)

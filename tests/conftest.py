@@ -49,3 +49,22 @@ def brute_marginals(configs: torch.Tensor, scores: torch.Tensor, k: int) -> torc
     p = torch.softmax(scores, -1)  # (B, C)
     onehot = torch.nn.functional.one_hot(configs, k).to(p.dtype)  # (C, V, K)
     return torch.einsum("bc,cvk->bvk", p, onehot)
+
+
+def cli_error_line(capsys, main, argv: list[str]) -> str:
+    """Run a CLI's ``main`` in-process; it must exit 2 with exactly one ``error: ...`` line on
+    stderr. Returns the message after ``error: ``."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.endswith("\n") and err.count("\n") == 1, err
+    return err[len("error: ") : -1]
+
+
+def assert_message(message: str, expected: str) -> None:
+    """``expected`` is the exact message, or a regular expression after ``re:``."""
+    import re
+
+    if expected.startswith("re:"):
+        assert re.fullmatch(expected[3:], message), message
+    else:
+        assert message == expected

@@ -49,3 +49,11 @@ def test_planar_arm_factor_densities_are_consistent():
 def test_render_walk_writes_the_readme_picture(tmp_path):
     out = _load("render_walk").main(tmp_path / "walk.png")
     assert out.stat().st_size > 10_000
+
+
+def test_render_walk_leaves_the_tracked_picture_alone_by_default():
+    module = _load("render_walk")
+    assert module._out_path([]) == module.DEFAULT_OUT
+    assert module.DEFAULT_OUT.parts[0] == "runs"
+    assert module._out_path(["--docs"]) == module.DOCS_OUT
+    assert module._out_path(["x.png"]) == Path("x.png")

@@ -1,5 +1,6 @@
 """Every config runs in tiny mode (configs cannot drift from code); the metric names are a
-contract; config mistakes fail loudly."""
+contract (accuracy figures in metrics.json, timings in timings.json); config mistakes fail
+loudly."""
 
 import json
 from pathlib import Path
@@ -12,14 +13,13 @@ from experiments.runner import EXPERIMENTS, run_config
 from tests.conftest import SHARED_DATA, requires_shared_data
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "experiments" / "configs").glob("*.yaml"))
-CONTRACT = {
+CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same file)
     "stick_pose": [
         f"{p}{m}_{n}"
         for p in ("", "opencv_")
         for m in ("reg_err_mean", "rot_err_deg_mean", "pos_err_mean")
         for n in ("n0", "n18", "n36")
-    ]
-    + ["poses_per_s", "opencv_poses_per_s"],
+    ],
     "pose2sim_real": [
         "cam_rot_err_deg_mean",
         "cam_pos_err_m_mean",
@@ -32,6 +32,15 @@ CONTRACT = {
         for method in ("dtw", "chain", "robust")
     ],
 }
+TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
+    "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
+    "pose2sim_real": [],
+    "stick_time": [],
+}
+
+
+def _has(keys, key) -> bool:
+    return any(k == key or k.startswith(key + "@") for k in keys)
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
@@ -41,9 +50,13 @@ def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
     metrics = run_config(path, {"tiny": True, "out_dir": str(tmp_path)})
     name = path.stem
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
-    assert on_disk == metrics and (tmp_path / "table.md").exists()
+    timings_file = tmp_path / "timings.json"
+    timings = json.loads(timings_file.read_text()) if timings_file.exists() else {}
+    assert {**on_disk, **timings} == metrics and (tmp_path / "table.md").exists()
     for key in CONTRACT[name]:
-        assert any(k == key or k.startswith(key + "@") for k in metrics), key
+        assert _has(on_disk, key), key
+    for key in TIMINGS_CONTRACT[name]:
+        assert _has(timings, key) and not _has(on_disk, key), key
     assert list(tmp_path.rglob("plot.png")) and list(tmp_path.rglob("per_frame.csv"))
 
 
@@ -95,7 +108,7 @@ def test_config_mistakes_fail_loudly(tmp_path):
 
 
 def test_cli_run_reports_errors_in_one_line(tmp_path, capsys):
-    assert main(["run", str(CONFIGS[0]), "colour=red"]) == 1
+    assert main(["run", str(CONFIGS[0]), "colour=red"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "unknown key 'colour'" in err and "\n" not in err
 
@@ -111,10 +124,21 @@ def test_pose2sim_real_meets_its_targets(tmp_path):
     assert m["c_err_mean"] <= 1.0 and m["reproj_px_median"] < 15
 
 
-def test_missing_data_skips_with_a_message(tmp_path, capsys):
+def test_missing_data_skips_only_at_the_default_location(tmp_path, capsys, monkeypatch):
+    """The test suite's case: the default ../shared/data absent -> a skip with a message;
+    a data folder the user names that lacks the trial -> an error."""
+    from experiments import pose2sim_real
+
     path = CONFIGS[[c.stem for c in CONFIGS].index("pose2sim_real")]
-    assert main(["run", str(path), f"data={tmp_path}", f"out_dir={tmp_path / 'o'}"]) == 0
-    assert capsys.readouterr().out.startswith("skipped: pose2sim_real needs the shared data set")
+    absent = tmp_path / "shared" / "data"
+    monkeypatch.setattr(pose2sim_real, "SHARED", absent)
+    assert main(["run", str(path), f"data={absent}", f"out_dir={tmp_path / 'o'}"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1].startswith("skipped: pose2sim_real needs the shared data set")
+    assert main(["run", str(path), f"data={tmp_path}", f"out_dir={tmp_path / 'o'}"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: data={tmp_path}: expected the shared data folder")
+    assert err.count("\n") == 1
 
 
 def test_stick_time_coarse_to_fine_matches_the_full_chain_without_the_full_matrix(tmp_path):

@@ -10,7 +10,10 @@ def test_demo_writes_metrics_and_plot(tmp_path):
     metrics = run_demo(out_dir=tmp_path, seed=0)
     assert (tmp_path / "alignment.png").stat().st_size > 10_000
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
-    assert on_disk == metrics
+    timings = json.loads((tmp_path / "timings.json").read_text())
+    assert {**on_disk, **timings} == metrics and set(timings) == {
+        f"seconds_{m}" for m in ("dtw", "chain", "robust")
+    }
     # The proposal's DTW is dragged along the replaced frames; the robust chain is not.
     assert metrics["c_err_inside_mean_dtw"] > 10.0
     assert metrics["c_err_inside_mean_robust"] < 2.0

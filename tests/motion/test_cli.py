@@ -21,6 +21,6 @@ def test_info_fails_with_one_line_reason(tmp_path, capsys, content, message):
     path = tmp_path / "x.bvh"
     if content is not None:
         path.write_text(content)
-    assert main(["info", str(path)]) == 1
+    assert main(["info", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and message in err and "\n" not in err

@@ -120,8 +120,8 @@ def test_cli_synth_and_its_errors(tmp_path, capsys):
     )
     meta = json.loads((out / "sequence.json").read_text())
     assert meta["video_rate_hz"] == 30.0 and (out / "cam1.avi").exists()
-    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "colour=red"]) == 1
+    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "colour=red"]) == 2
     assert "unknown setting 'colour'" in capsys.readouterr().err
-    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "warp=1.5"]) == 1
+    assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "warp=1.5"]) == 2
     assert "warp must be in [0, 1)" in capsys.readouterr().err
-    assert main(["synth", "--reference", str(tmp_path / "none.bvh"), "--out", str(out)]) == 1
+    assert main(["synth", "--reference", str(tmp_path / "none.bvh"), "--out", str(out)]) == 2
