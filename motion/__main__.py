@@ -35,7 +35,7 @@ def _body_lines(model: BodyModel) -> list[str]:
     lines = [
         f"body parts: all {model.num_parts} mapped; each part is a capsule between two of "
         f"{len(model.roles)} landmark roles, and each role is placed at the mean of the "
-        "joints (NAME.end: a joint's end site) listed under it",
+        "joints (NAME.end: a joint's end site; NAME.tip: an end synthesized past a joint) listed under it",
         f"  parts ({model.num_parts}: from role -> to role):",
     ]
     for name, (a, b) in zip(model.part_names, ends, strict=True):

@@ -170,6 +170,16 @@ class Skeleton:
         if metres_per_unit is None:
             metres_per_unit, note = estimate_metres_per_unit(bvh)
         else:
+            low, high = _UNIT_RANGE_M
+            if (
+                isinstance(metres_per_unit, bool)
+                or not isinstance(metres_per_unit, int | float)
+                or not low <= metres_per_unit <= high
+            ):
+                raise SkeletonError(
+                    f"{bvh.path}: metres_per_unit must be a number in [{low:g}, {high:g}]; got "
+                    f"{metres_per_unit!r}"
+                )
             note = f"declared: {metres_per_unit} m per file unit"
         return cls(
             names=list(bvh.names),

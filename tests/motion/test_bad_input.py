@@ -983,3 +983,15 @@ def test_the_bundled_walk_renamed_to_3dsmax_names_gives_the_same_landmarks(tmp_p
     assert models[1].mapping == expected
     assert expected["hand_end_l"] == ["LFingers"] and expected["wrist_r"] == ["RightWrist"]
     torch.testing.assert_close(landmarks[1], landmarks[0], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("value", [0, -1.0, float("nan"), 1e9, True, "0.01"])
+def test_declared_units_are_checked(value):
+    from motion.bvh import read_bvh
+    from motion.kinematics import Skeleton, SkeletonError
+
+    bvh = read_bvh(Path(__file__).resolve().parents[2] / "motion" / "data" / "cmu_02_01_walk.bvh")
+    with pytest.raises(
+        SkeletonError, match=r"metres_per_unit must be a number in \[1e-06, 100\]; got"
+    ):
+        Skeleton.from_bvh(bvh, metres_per_unit=value)
