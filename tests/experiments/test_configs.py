@@ -31,11 +31,13 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         for m in ("c_err_mean", "c_err_outside_mean", "c_err_inside_mean")
         for method in ("dtw", "chain", "robust")
     ],
+    "nbp_single_image": ["e2d_init_mean", "e2d_mean", "e3d_init_mean", "e3d_mean"],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
     "pose2sim_real": [],
     "stick_time": [],
+    "nbp_single_image": ["sec_per_frame"],
 }
 
 
