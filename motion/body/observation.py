@@ -352,6 +352,7 @@ class PartSamples:
     rest_depth: Tensor
     flat: Tensor
     batch_maps: int  # B of the maps the index was made for (1: shared by the batch)
+    image_base: Tensor  # index of each point's image's first pixel in the flattened maps
 
     @property
     def own(self) -> Tensor:
@@ -362,14 +363,36 @@ class PartSamples:
     def rest_covered(self) -> Tensor:
         return torch.isfinite(self.rest_depth)
 
-    def gather(self, maps: Tensor, outside: float = 0.0) -> Tensor:
+    def gather(self, maps: Tensor, outside: float = 0.0, smooth: bool = False) -> Tensor:
         """Values of ``(B or 1, T, C, H, W)`` maps at the points (``outside`` where a point
-        leaves the image); ``(B or 1, T, C, ch, H, W)`` maps give ``(..., S, ch)``."""
+        leaves the image): the nearest pixel's, or with ``smooth`` bilinearly interpolated
+        (continuous in the pose: sub-pixel moves change the score).
+        ``(B or 1, T, C, ch, H, W)`` maps give ``(..., S, ch)``."""
         if maps.dim() == 6:
-            chans = [self.gather(maps[:, :, :, i], outside) for i in range(maps.shape[3])]
+            chans = [self.gather(maps[:, :, :, i], outside, smooth) for i in range(maps.shape[3])]
             return torch.stack(chans, -1)
-        vals = maps.reshape(-1)[self._index(maps)]
+        flat = maps.reshape(-1)
+        if not smooth:
+            vals = flat[self._index(maps)]
+        else:
+            h, w = maps.shape[-2:]
+            base = self.image_base if maps.shape[0] == self.batch_maps else self._shared(maps)
+            u = self.points[..., 0].clamp(0, w - 1)
+            v = self.points[..., 1].clamp(0, h - 1)
+            u0 = u.floor().clamp(max=max(w - 2, 0))
+            v0 = v.floor().clamp(max=max(h - 2, 0))
+            fu, fv = u - u0, v - v0
+            i = base + v0.long() * w + u0.long()
+            right, down = (1 if w > 1 else 0), (w if h > 1 else 0)
+            top = flat[i] * (1 - fu) + flat[i + right] * fu
+            bottom = flat[i + down] * (1 - fu) + flat[i + down + right] * fu
+            vals = top * (1 - fv) + bottom * fv
         return torch.where(self.inside, vals, torch.full_like(vals, outside))
+
+    def _shared(self, maps: Tensor) -> Tensor:
+        if maps.shape[0] != 1:
+            raise ValueError(f"maps have batch {maps.shape[0]}; expected 1 or {self.batch_maps}")
+        return self.image_base % maps[0].numel()
 
     def _index(self, maps: Tensor) -> Tensor:
         if maps.shape[0] == self.batch_maps:
@@ -428,10 +451,11 @@ class Silhouette(Cue):
 
     outside: float = 0.1
     uncovered: float = 0.1
+    smooth: bool = False  # bilinear reads of the silhouette (use a soft one: sub-pixel)
 
     def score(self, samples, obs):
         inner = samples.interior
-        sil = inner.gather(obs.silhouette)
+        sil = inner.gather(obs.silhouette, smooth=self.smooth)
         w = inner.weight
         spill = (w * inner.own * (1 - sil)).sum(-1)
         explained = (w * inner.inside * sil * ~inner.rest_covered).sum(-1)
@@ -449,12 +473,14 @@ class Edges(Cue):
 
     weight: float = 0.2
     truncate: float = 8.0
+    smooth: bool = False  # bilinear reads of the distance map
 
     def score(self, samples, obs):
         if obs.edge_distance is None:
             raise ValueError("the Edges cue needs Observation.edge_distance")
         line = samples.outline
-        d = line.gather(obs.edge_distance, outside=self.truncate).clamp(max=self.truncate)
+        d = line.gather(obs.edge_distance, outside=self.truncate, smooth=self.smooth)
+        d = d.clamp(max=self.truncate)
         cost = (d / self.truncate).square()
         cost = torch.where(line.own, cost, torch.full_like(cost, 0.25))
         return -self.weight * (line.weight * cost).sum(-1)
@@ -675,10 +701,11 @@ class BodyObservation(UnaryFactor):
         bi = torch.arange(b, device=dev).reshape(b, 1, 1, 1, 1)
         fi = frames.reshape(1, -1, 1, 1, 1)
         ci = torch.arange(c, device=dev).reshape(1, 1, c, 1, 1)
-        flat = ((bi * t + fi) * c + ci) * (h * w) + pix
+        base = ((bi * t + fi) * c + ci) * (h * w)
+        flat = base + pix
         label = layers.label.reshape(-1)[flat]
         own_label = label == _node_axis_view(parts, label.dim())
         rest_depth = torch.where(
             own_label, layers.second.reshape(-1)[flat], layers.near.reshape(-1)[flat]
         )
-        return PartSamples(points, weight, depth, inside, rest_depth, flat, b)
+        return PartSamples(points, weight, depth, inside, rest_depth, flat, b, base.expand_as(flat))

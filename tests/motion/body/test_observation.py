@@ -324,3 +324,20 @@ def test_factor_contract_frames_batch_cameras_and_annealing():
         f1.log_potential(x, nodes, estimates[:, :30])
     with pytest.raises(ValueError, match="the rig has 2 cameras but the observation 1"):
         BodyObservation(shapes, two, Observation(sil[None, :, None]))
+
+
+def test_smooth_gathers_interpolate_bilinearly(scene):
+    """On a map that is linear in (u, v) a bilinear read is exact at any sub-pixel point; a
+    nearest read is off by up to half a pixel's slope."""
+    _, poses, _, _, sil, x, _ = scene
+    f = _factor(scene, [Silhouette(smooth=True)])
+    inner = f.samples(x, torch.arange(15), poses).interior
+    v, u = torch.meshgrid(torch.arange(H, dtype=F64), torch.arange(W, dtype=F64), indexing="ij")
+    ramp = (0.3 * u - 0.7 * v + 2.0)[None, None, None]  # (1, 1, 1, H, W)
+    u_pt, v_pt = inner.points[..., 0], inner.points[..., 1]
+    exact = 0.3 * u_pt - 0.7 * v_pt + 2.0
+    inside = inner.inside & (u_pt <= W - 1) & (v_pt <= H - 1) & (u_pt >= 0) & (v_pt >= 0)
+    got = inner.gather(ramp, smooth=True)
+    torch.testing.assert_close(got[inside], exact[inside])
+    nearest = inner.gather(ramp)
+    assert ((nearest - exact)[inside].abs() <= 0.5 * (0.3 + 0.7) + 1e-9).all()
