@@ -329,7 +329,7 @@ def test_factor_contract_frames_batch_cameras_and_annealing():
 def test_smooth_gathers_interpolate_bilinearly(scene):
     """On a map that is linear in (u, v) a bilinear read is exact at any sub-pixel point; a
     nearest read is off by up to half a pixel's slope."""
-    _, poses, _, _, sil, x, _ = scene
+    poses, x = scene[1], scene[5]
     f = _factor(scene, [Silhouette(smooth=True)])
     inner = f.samples(x, torch.arange(15), poses).interior
     v, u = torch.meshgrid(torch.arange(H, dtype=F64), torch.arange(W, dtype=F64), indexing="ij")
