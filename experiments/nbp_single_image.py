@@ -36,6 +36,7 @@ from motion.body.observation import (
     PartShapes,
     Silhouette,
 )
+from motion.body.polish import polish
 from motion.body.spec import BodySpec
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
@@ -81,6 +82,7 @@ class NbpSingleImageConfig(ExperimentConfig):
     intensity_weight: float = setting(
         0.05, "nats per pixel of the intensity cue (colour distance / 2 sigma^2)", gt=0, le=100
     )
+    polish: bool = setting(False, "gradient polish of the BP estimate on the soft renderer")
     temporal: bool = setting(
         False, "temporal edges between frames (the frames are consecutive then)"
     )
@@ -224,8 +226,11 @@ def run(cfg: NbpSingleImageConfig):
         kernel_schedule=Geometric(1.0, 0.05, it),
         proposal_centres=min(30, k),
     )
-    seconds = time.perf_counter() - t0
     estimate = result.best[0].reshape(t, p, 7)
+    if cfg.polish:
+        colours = torch.from_numpy(PART_COLOURS[:p].astype(np.float32) / 255)
+        estimate = polish(spec, rig, obs, estimate, colours if "intensity" in cfg.cues else None)
+    seconds = time.perf_counter() - t0
     e2_init, e3_init = _errors(spec, rig, truth, start)
     e2, e3 = _errors(spec, rig, truth, estimate)
     metrics = {
