@@ -32,12 +32,14 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         for method in ("dtw", "chain", "robust")
     ],
     "nbp_single_image": ["e2d_init_mean", "e2d_mean", "e3d_init_mean", "e3d_mean"],
+    "nbp_noise_sweep": ["e2d_mean_at_0", "e3d_mean_at_0", "e2d_mean_at_30", "e3d_mean_at_30"],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
     "pose2sim_real": [],
     "stick_time": [],
     "nbp_single_image": ["sec_per_frame"],
+    "nbp_noise_sweep": ["sec_per_frame"],
 }
 
 
