@@ -97,7 +97,9 @@ def torch_whole_body(seg, model, rig, hyp_seg, sil, dist, count: int) -> float:
         spill = (mine & (grid_sil == 0)).sum()
         explained = (mine & (grid_sil > 0) & ~others).sum()
         edge = labels[0] == j  # its visible outline: own pixels next to other labels
-        inner = edge[1:-1, 1:-1] & edge[:-2, 1:-1] & edge[2:, 1:-1] & edge[1:-1, :-2] & edge[1:-1, 2:]
+        inner = (
+            edge[1:-1, 1:-1] & edge[:-2, 1:-1] & edge[2:, 1:-1] & edge[1:-1, :-2] & edge[1:-1, 2:]
+        )
         border = edge[1:-1, 1:-1] & ~inner
         chamfer = dist[0, 1:-1, 1:-1][border].clamp(max=8).square().sum()
         float(spill - explained + chamfer)
@@ -184,7 +186,10 @@ def main() -> None:
     print("| method | part-hypotheses / s | us each | vs OpenCV loop |")
     print("|---|---|---|---|")
     rows = (
-        ("BodyObservation: occlusion-aware, sampled points (silhouette both ways + chamfer)", "ours"),
+        (
+            "BodyObservation: occlusion-aware, sampled points (silhouette both ways + chamfer)",
+            "ours",
+        ),
         ("torch, whole body re-rendered per hypothesis (exact, occlusion-aware)", "whole"),
         ("OpenCV cv2.line capsule per hypothesis + NumPy (no occlusion)", "cv"),
     )
