@@ -32,6 +32,7 @@ from motion.body.observation import (
     BodyObservation,
     Edges,
     Intensity,
+    Joints2D,
     Observation,
     PartShapes,
     Silhouette,
@@ -46,9 +47,10 @@ from motion.features import distance_to_edges, edges
 from motion.kinematics import Skeleton, euler_to_matrix, forward_kinematics, local_rotations
 from motion.render import label_map, project_parts, render_intensity, silhouette
 from motion.settings import setting
-from pgm import SE3, Geometric, MaxSemiring, particle_bp
+from pgm import SE3, Constant, Geometric, MaxSemiring, particle_bp
 
-CUES = ("silhouette", "edges", "intensity")
+CUES = ("silhouette", "edges", "intensity", "joints")
+KEYPOINT_NOISE_PX = 2.0  # std of the simulated detector's 2-D joints (the joints cue)
 CAMERAS = ("orthographic", "perspective")
 #: metrics that are timings (timings.json)
 TIMINGS = ("sec_per_frame",)
@@ -83,6 +85,8 @@ class NbpSingleImageConfig(ExperimentConfig):
         0.05, "nats per pixel of the intensity cue (colour distance / 2 sigma^2)", gt=0, le=100
     )
     polish: bool = setting(False, "gradient polish of the BP estimate on the soft renderer")
+    annealing: bool = setting(True, "anneal the connections and the proposal kernels")
+    occlusion: bool = setting(True, "score parts against the rest of the body (False: alone)")
     temporal: bool = setting(
         False, "temporal edges between frames (the frames are consecutive then)"
     )
@@ -154,9 +158,12 @@ def _postures(cfg: NbpSingleImageConfig, g: torch.Generator):
     return spec, truth.float(), start.float()
 
 
-def _observe(spec: BodySpec, rig: CameraRig, truth: torch.Tensor) -> Observation:
-    """What cameras see of the true postures: silhouettes, part-coloured images, and the
-    distance to the images' Canny edges (motion.features, as on a video)."""
+def _observe(
+    spec: BodySpec, rig: CameraRig, truth: torch.Tensor, g: torch.Generator | None = None
+) -> Observation:
+    """What cameras see of the true postures: silhouettes, part-coloured images, the
+    distance to the images' Canny edges (motion.features, as on a video), and 2-D joints
+    (every part end, with ``KEYPOINT_NOISE_PX`` of Gaussian noise: a detector's)."""
     colours = torch.from_numpy(PART_COLOURS[: spec.num_parts].astype(np.float32) / 255)
     seg = spec.landmarks(truth)  # (T, P, 2, 3)
     parts = project_parts(rig, seg, spec.shapes.radii.float())  # (T, C, P, ...)
@@ -167,7 +174,10 @@ def _observe(spec: BodySpec, rig: CameraRig, truth: torch.Tensor) -> Observation
     flat = image.reshape(t * c, 3, H, W)
     dist = distance_to_edges(edges(flat)).reshape(t, c, H, W)
     dist = torch.where(torch.isfinite(dist), dist, torch.full_like(dist, 1e3))
-    return Observation(sil[None], edge_distance=dist[None], image=image[None])
+    ends, _ = rig.project(seg.flatten(-3, -2))  # (T, C, 2P, 2): every part's two ends
+    noise = torch.randn(ends.shape, generator=g, dtype=ends.dtype) * KEYPOINT_NOISE_PX
+    keypoints = torch.cat([ends + noise, torch.ones_like(ends[..., :1])], -1)
+    return Observation(sil[None], dist[None], image[None], keypoints[None])
 
 
 def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
@@ -176,8 +186,17 @@ def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
         "silhouette": lambda: Silhouette(1.0, 1.0),
         "edges": lambda: Edges(0.2),
         "intensity": lambda: Intensity(colours, cfg.intensity_weight),
+        "joints": lambda: Joints2D(torch.arange(2 * spec.num_parts).reshape(-1, 2), 1.0, 4.0),
     }
     return [make[c]() for c in cfg.cues]
+
+
+def _anneal(cfg: NbpSingleImageConfig, end: float):
+    """A geometric schedule from 1 to ``end`` over the iterations, or (annealing off) the
+    geometric mean of that range throughout (the same average spread, not shrinking)."""
+    if cfg.annealing:
+        return Geometric(1.0, end, cfg.iterations)
+    return Constant(math.sqrt(end))
 
 
 def _errors(spec: BodySpec, rig: CameraRig, truth: torch.Tensor, poses: torch.Tensor):
@@ -196,16 +215,17 @@ def run(cfg: NbpSingleImageConfig):
     g = torch.Generator().manual_seed(cfg.seed)
     spec, truth, start = _postures(cfg, g)
     rig = _ring(cfg)
-    obs = _observe(spec, rig, truth)
+    detector = torch.Generator().manual_seed(cfg.seed + 1)  # apart from the search's draws
+    obs = _observe(spec, rig, truth, detector)
     t, p = truth.shape[:2]
     shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
-    unary = BodyObservation(shapes, rig, obs, cues=_cues(cfg, spec))
+    unary = BodyObservation(shapes, rig, obs, cues=_cues(cfg, spec), occlusion=cfg.occlusion)
     it = cfg.iterations
     graph = body_graph(
         spec,
         t,
         [(torch.arange(t * p), unary)],
-        Connections(pos_std=0.02, rot_std=1.0, schedule=Geometric(1.0, 0.25, it)),
+        Connections(pos_std=0.02, rot_std=1.0, schedule=_anneal(cfg, 0.25)),
         Temporal() if cfg.temporal else None,
     )
     k = cfg.particles
@@ -223,7 +243,7 @@ def run(cfg: NbpSingleImageConfig):
         semiring=MaxSemiring(),
         proposal=cfg.proposal,
         kernel_scale=(0.02, 0.5),
-        kernel_schedule=Geometric(1.0, 0.05, it),
+        kernel_schedule=_anneal(cfg, 0.05),
         proposal_centres=min(30, k),
     )
     estimate = result.best[0].reshape(t, p, 7)

@@ -23,7 +23,14 @@ from typing import NamedTuple
 
 import yaml
 
-from experiments import nbp_noise_sweep, nbp_single_image, pose2sim_real, stick_pose, stick_time
+from experiments import (
+    nbp_ablation,
+    nbp_noise_sweep,
+    nbp_single_image,
+    pose2sim_real,
+    stick_pose,
+    stick_time,
+)
 from experiments.config import apply_overrides, load_config, sweep_label
 from experiments.progress import note, progress
 
@@ -52,6 +59,9 @@ EXPERIMENTS = {
     ),
     "pose2sim_real": Experiment(
         pose2sim_real.Pose2simRealConfig, pose2sim_real.run, pose2sim_real.plot
+    ),
+    "nbp_ablation": Experiment(
+        nbp_ablation.NbpAblationConfig, nbp_ablation.run, nbp_ablation.plot, nbp_ablation.TIMINGS
     ),
     "nbp_noise_sweep": Experiment(
         nbp_noise_sweep.NbpNoiseSweepConfig,

@@ -33,6 +33,7 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
     ],
     "nbp_single_image": ["e2d_init_mean", "e2d_mean", "e3d_init_mean", "e3d_mean"],
     "nbp_noise_sweep": ["e2d_mean_at_0", "e3d_mean_at_0", "e2d_mean_at_30", "e3d_mean_at_30"],
+    "nbp_ablation": ["e2d_mean_full", "e3d_mean_full", "e2d_mean_bpmc", "e3d_mean_bpmc"],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
@@ -40,6 +41,7 @@ TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_time": [],
     "nbp_single_image": ["sec_per_frame"],
     "nbp_noise_sweep": ["sec_per_frame"],
+    "nbp_ablation": ["sec_per_frame_full"],
 }
 
 

@@ -1,0 +1,130 @@
+"""Ablations of posture refinement: one Markdown table, a row per variant.
+
+Each row is the :mod:`experiments.nbp_single_image` protocol with one change from the full
+method (its defaults): annealing off, occlusion-unaware observations (each part scored
+alone), the cues one by one, the BPMC-style proposal, the particle count, the number of
+cameras, temporal edges, the gradient polish. Columns: E_2D, E_3D (Eqs. 36-37, means over
+the frames) and seconds per frame. Written as ``ablation.md`` beside the record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from experiments import nbp_single_image
+from experiments.config import ExperimentConfig
+from experiments.progress import progress
+from motion.settings import setting
+
+#: variant name -> (row label, overrides of nbp_single_image's defaults)
+VARIANTS: dict[str, tuple[str, dict]] = {
+    "full": ("full method (silhouette + edges + intensity, mixture proposal, 150 particles)", {}),
+    "no_annealing": ("no annealing", {"annealing": False}),
+    "occlusion_unaware": ("occlusion-unaware observation (each part alone)", {"occlusion": False}),
+    "silhouette": ("silhouette only", {"cues": ["silhouette"]}),
+    "edges": ("silhouette + edges", {"cues": ["silhouette", "edges"]}),
+    "joints": (
+        "+ 2-D joints (2 px detector noise)",
+        {"cues": ["silhouette", "edges", "intensity", "joints"]},
+    ),
+    "bpmc": ("BPMC-style proposal (own marginal only)", {"proposal": "own"}),
+    "particles_50": ("50 particles", {"particles": 50}),
+    "particles_500": ("500 particles", {"particles": 500}),
+    "cameras_2": ("2 cameras", {"cameras": 2}),
+    "cameras_4": ("4 cameras", {"cameras": 4}),
+    "temporal": ("temporal edges on (consecutive frames)", {"temporal": True}),
+    "polish": ("gradient polish on", {"polish": True}),
+}
+#: metrics that are timings (timings.json)
+TIMINGS = tuple(f"sec_per_frame_{v}" for v in VARIANTS)
+
+
+@dataclass
+class NbpAblationConfig(ExperimentConfig):
+    """Fields of ``experiments/configs/nbp_ablation.yaml``."""
+
+    TINY: ClassVar[dict] = {
+        "frames": 2,
+        "particles_scale": 0.2,
+        "variants": ["full", "occlusion_unaware", "bpmc"],
+    }
+
+    frames: int = setting(40, "frames per variant", ge=1, le=10000)
+    particles_scale: float = setting(
+        1.0, "multiplies every variant's particle count (tests: fewer)", gt=0, le=10
+    )
+    variants: list[str] = setting(
+        list(VARIANTS), "rows of the table", choices=tuple(VARIANTS), min_length=1
+    )
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    out_dir: str = setting("runs/nbp_ablation", "output folder")
+    tiny: bool = setting(
+        False,
+        "a quick run: frames=2, particles_scale=0.2, variants=[full, occlusion_unaware, bpmc] "
+        "(values given on the command line win)",
+    )
+
+
+def run(cfg: NbpAblationConfig):
+    metrics: dict[str, float] = {}
+    rows = []
+    for name in progress(cfg.variants, "nbp_ablation: variants"):
+        label, overrides = VARIANTS[name]
+        fields = {"frames": cfg.frames, "seed": cfg.seed, **overrides}
+        base = overrides.get("particles", nbp_single_image.NbpSingleImageConfig.particles)
+        fields["particles"] = max(2, round(base * cfg.particles_scale))
+        m, _, _ = nbp_single_image.run(nbp_single_image.NbpSingleImageConfig(**fields))
+        metrics[f"e2d_mean_{name}"] = m["e2d_mean"]
+        metrics[f"e3d_mean_{name}"] = m["e3d_mean"]
+        metrics[f"sec_per_frame_{name}"] = m["sec_per_frame"]
+        rows.append(
+            (
+                label,
+                m["e2d_init_mean"],
+                m["e2d_mean"],
+                m["e3d_init_mean"],
+                m["e3d_mean"],
+                m["sec_per_frame"],
+            )
+        )
+    table = [
+        "| variant | E_2D (start -> result) | E_3D (start -> result) | s / frame |",
+        "|---|---|---|---|",
+        *(
+            f"| {r[0]} | {r[1]:.3f} -> {r[2]:.3f} | {r[3]:.3f} -> {r[4]:.3f} | {r[5]:.2f} |"
+            for r in rows
+        ),
+    ]
+    columns = {
+        "variant": np.arange(len(rows)),
+        "e2d": np.array([r[2] for r in rows]),
+        "e3d": np.array([r[4] for r in rows]),
+    }
+    return metrics, columns, {"table": "\n".join(table) + "\n", "rows": rows}
+
+
+def plot(path, data, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = data["rows"]
+    fig, ax = plt.subplots(figsize=(9, 0.35 * len(rows) + 1.2), dpi=100)
+    y = np.arange(len(rows))
+    ax.barh(y - 0.2, [r[2] for r in rows], 0.4, label="E_2D", color="C3")
+    ax.barh(y + 0.2, [r[4] for r in rows], 0.4, label="E_3D", color="C0")
+    ax.set_yticks(y, [r[0][:48] for r in rows], fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel("fraction of the figure's height")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="x")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    Path(path).with_name("ablation.md").write_text(data["table"])
