@@ -105,3 +105,32 @@ def test_particle_bp_on_the_body_graph_keeps_the_posture_it_is_pulled_to(walk):
     err = (spec.landmarks(res.mean[0].reshape(2, 15, 7)) - spec.landmarks(truth)).norm(dim=-1)
     start = (spec.landmarks(init[0, :, 0].reshape(2, 15, 7)) - spec.landmarks(truth)).norm(dim=-1)
     assert err.mean() < 0.03 and err.mean() < 0.5 * start.mean(), (err.mean(), start.mean())
+
+
+def test_posture_fit_round_trips_part_poses(walk):
+    """Part poses of a posture -> fit with the true rotations of the joints no part drives:
+    the driving joints' local rotations and every landmark come back exactly; with a rest
+    reference for the undriven joints the landmarks still land within the model's rigidity
+    plus what those joints move (the walk: < 2 cm)."""
+    from motion.body.fit import fit_posture
+
+    skeleton, model, fk, spec = walk
+    frames = [10, 70, 130]
+    sub = type(fk)(fk.positions[frames], fk.rotations[frames])
+    poses = spec.poses(model, skeleton, sub)
+    bvh = read_bvh(WALK)
+    rot, _ = local_rotations(
+        skeleton, torch.from_numpy(bvh.motion_frames()[frames]).to(F64), bvh.channels
+    )
+    fit = fit_posture(spec, skeleton, model, poses, rot)
+    driving = spec.frame_joints
+    torch.testing.assert_close(fit.rotations[:, driving], rot[:, driving], atol=1e-6, rtol=0)
+    truth = model.landmarks(model.skeleton_points(skeleton, sub))
+    got = model.landmarks(model.skeleton_points(skeleton, fit.fk))
+    torch.testing.assert_close(got, truth, atol=1e-6, rtol=0)
+    rest = torch.eye(3, dtype=F64).expand_as(rot)
+    loose = fit_posture(spec, skeleton, model, poses, rest)
+    err = (model.landmarks(model.skeleton_points(skeleton, loose.fk)) - truth).norm(dim=-1)
+    assert err.mean() < 0.02, err.mean()
+    with pytest.raises(ValueError, match=r"poses must have shape \(\.\.\., 15, 7\)"):
+        fit_posture(spec, skeleton, model, poses[..., :3], rot)
