@@ -86,6 +86,10 @@ class NbpSingleImageConfig(ExperimentConfig):
     )
     polish: bool = setting(False, "gradient polish of the BP estimate on the soft renderer")
     annealing: bool = setting(True, "anneal the connections and the proposal kernels")
+    smooth: bool = setting(False, "bilinear reads of the silhouette and edge maps")
+    kernel_end: float = setting(
+        0.05, "the proposal kernels' final multiplier (start: 2 cm, 0.5 rad)", gt=0, le=1
+    )
     occlusion: bool = setting(True, "score parts against the rest of the body (False: alone)")
     temporal: bool = setting(
         False, "temporal edges between frames (the frames are consecutive then)"
@@ -183,8 +187,8 @@ def _observe(
 def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
     colours = torch.from_numpy(PART_COLOURS[: spec.num_parts].astype(np.float32) / 255)
     make = {
-        "silhouette": lambda: Silhouette(1.0, 1.0),
-        "edges": lambda: Edges(0.2),
+        "silhouette": lambda: Silhouette(1.0, 1.0, smooth=cfg.smooth),
+        "edges": lambda: Edges(0.2, smooth=cfg.smooth),
         "intensity": lambda: Intensity(colours, cfg.intensity_weight),
         "joints": lambda: Joints2D(torch.arange(2 * spec.num_parts).reshape(-1, 2), 1.0, 4.0),
     }
@@ -243,7 +247,7 @@ def run(cfg: NbpSingleImageConfig):
         semiring=MaxSemiring(),
         proposal=cfg.proposal,
         kernel_scale=(0.02, 0.5),
-        kernel_schedule=_anneal(cfg, 0.05),
+        kernel_schedule=_anneal(cfg, cfg.kernel_end),
         proposal_centres=min(30, k),
     )
     estimate = result.best[0].reshape(t, p, 7)
