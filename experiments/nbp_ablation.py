@@ -60,6 +60,9 @@ class NbpAblationConfig(ExperimentConfig):
     variants: list[str] = setting(
         list(VARIANTS), "rows of the table", choices=tuple(VARIANTS), min_length=1
     )
+    repeats: int = setting(
+        1, "seeds per variant (seed, seed + 1, ...): rows show mean +- std", ge=1, le=20
+    )
     seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
     out_dir: str = setting("runs/nbp_ablation", "output folder")
     tiny: bool = setting(
@@ -74,37 +77,40 @@ def run(cfg: NbpAblationConfig):
     rows = []
     for name in progress(cfg.variants, "nbp_ablation: variants"):
         label, overrides = VARIANTS[name]
-        fields = {"frames": cfg.frames, "seed": cfg.seed, **overrides}
         base = overrides.get("particles", nbp_single_image.NbpSingleImageConfig.particles)
-        fields["particles"] = max(2, round(base * cfg.particles_scale))
-        m, _, _ = nbp_single_image.run(nbp_single_image.NbpSingleImageConfig(**fields))
-        metrics[f"e2d_mean_{name}"] = m["e2d_mean"]
-        metrics[f"e3d_mean_{name}"] = m["e3d_mean"]
-        metrics[f"sec_per_frame_{name}"] = m["sec_per_frame"]
-        rows.append(
-            (
-                label,
-                m["e2d_init_mean"],
-                m["e2d_mean"],
-                m["e3d_init_mean"],
-                m["e3d_mean"],
-                m["sec_per_frame"],
-            )
-        )
+        runs = []
+        for seed in range(cfg.seed, cfg.seed + cfg.repeats):
+            fields = {"frames": cfg.frames, "seed": seed, **overrides}
+            fields["particles"] = max(2, round(base * cfg.particles_scale))
+            runs.append(nbp_single_image.run(nbp_single_image.NbpSingleImageConfig(**fields))[0])
+        mean = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+        std = {k: float(np.std([r[k] for r in runs])) for k in runs[0]}
+        metrics[f"e2d_mean_{name}"] = mean["e2d_mean"]
+        metrics[f"e3d_mean_{name}"] = mean["e3d_mean"]
+        metrics[f"sec_per_frame_{name}"] = mean["sec_per_frame"]
+        rows.append((label, mean, std))
+    spread = cfg.repeats > 1
+
+    def cell(row, key):
+        text = f"{row[1][key + '_init_mean']:.3f} -> {row[1][key + '_mean']:.3f}"
+        return text + (f" +- {row[2][key + '_mean']:.3f}" if spread else "")
+
+    seeds = f"seeds {cfg.seed}-{cfg.seed + cfg.repeats - 1}" if spread else f"seed {cfg.seed}"
     table = [
-        "| variant | E_2D (start -> result) | E_3D (start -> result) | s / frame |",
+        f"| variant ({cfg.frames} frames, {seeds}) | E_2D (start -> result) | E_3D (start -> result) | s / frame |",
         "|---|---|---|---|",
         *(
-            f"| {r[0]} | {r[1]:.3f} -> {r[2]:.3f} | {r[3]:.3f} -> {r[4]:.3f} | {r[5]:.2f} |"
+            f"| {r[0]} | {cell(r, 'e2d')} | {cell(r, 'e3d')} | {r[1]['sec_per_frame']:.2f} |"
             for r in rows
         ),
     ]
     columns = {
         "variant": np.arange(len(rows)),
-        "e2d": np.array([r[2] for r in rows]),
-        "e3d": np.array([r[4] for r in rows]),
+        "e2d": np.array([r[1]["e2d_mean"] for r in rows]),
+        "e3d": np.array([r[1]["e3d_mean"] for r in rows]),
     }
-    return metrics, columns, {"table": "\n".join(table) + "\n", "rows": rows}
+    plot_rows = [(r[0], r[1]["e2d_mean"], r[1]["e3d_mean"]) for r in rows]
+    return metrics, columns, {"table": "\n".join(table) + "\n", "rows": plot_rows}
 
 
 def plot(path, data, title: str) -> None:
@@ -116,8 +122,8 @@ def plot(path, data, title: str) -> None:
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(9, 0.35 * len(rows) + 1.2), dpi=100)
     y = np.arange(len(rows))
-    ax.barh(y - 0.2, [r[2] for r in rows], 0.4, label="E_2D", color="C3")
-    ax.barh(y + 0.2, [r[4] for r in rows], 0.4, label="E_3D", color="C0")
+    ax.barh(y - 0.2, [r[1] for r in rows], 0.4, label="E_2D", color="C3")
+    ax.barh(y + 0.2, [r[2] for r in rows], 0.4, label="E_3D", color="C0")
     ax.set_yticks(y, [r[0][:48] for r in rows], fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("fraction of the figure's height")

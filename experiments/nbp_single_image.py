@@ -95,7 +95,9 @@ class NbpSingleImageConfig(ExperimentConfig):
         False, "temporal edges between frames (the frames are consecutive then)"
     )
     proposal: str = setting(
-        "own", "particle proposal (mixture: neighbours propose too)", choices=("mixture", "own")
+        "mixture",
+        "particle proposal (mixture: neighbours propose through the connections; own: BPMC)",
+        choices=("mixture", "own"),
     )
     seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
     out_dir: str = setting("runs/nbp_single_image", "output folder")

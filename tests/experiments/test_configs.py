@@ -180,3 +180,18 @@ def test_stick_time_coarse_to_fine_matches_the_full_chain_without_the_full_matri
     assert c2f["c_err_outside_mean_c2f_robust"] <= 1.0
     with pytest.raises(ValueError, match="use methods=\\[c2f\\] for long sequences"):
         run(StickTimeConfig(**{**base.__dict__, "full_matrix_max_cells": 1}))
+
+
+def test_nbp_schema_defaults_are_the_shipped_config():
+    """Experiments that build nbp_single_image runs from the schema (the sweep, the ablation)
+    must run what nbp_single_image.yaml runs."""
+    from experiments.config import load_config
+    from experiments.nbp_single_image import NbpSingleImageConfig
+    from experiments.runner import EXPERIMENTS
+
+    schemas = {name: e.schema for name, e in EXPERIMENTS.items()}
+    path = CONFIGS[[c.stem for c in CONFIGS].index("nbp_single_image")]
+    shipped = load_config(path, schemas)[1]
+    schema = NbpSingleImageConfig()
+    for field in ("cues", "proposal", "particles", "iterations", "restarts", "noise_deg"):
+        assert getattr(shipped, field) == getattr(schema, field), field
