@@ -157,21 +157,18 @@ def main() -> None:
     g = torch.Generator().manual_seed(0)
     x = SE3().perturb(poses.reshape(1, t * p, 1, 7).expand(1, t * p, k, 7), (0.03, 0.3), g)
     obs = Observation(sil[None, :, None], edge_distance=dist[None, :, None])
-    factor = BodyObservation(shapes, rig, obs, cues=[Silhouette(), Edges()])
-    rig_d = rig
-    if device != "cpu":
-        move = {n: getattr(rig, n).to(device) for n in ("K", "R", "t", "dist", "size")}
-        rig_d = CameraRig(**move, names=rig.names, orthographic=True)
-        obs_d = Observation(obs.silhouette.to(device), edge_distance=obs.edge_distance.to(device))
-        shapes_d = PartShapes(shapes.axis.to(device), shapes.radii.to(device))
-        factor = BodyObservation(shapes_d, rig_d, obs_d, cues=[Silhouette(), Edges()])
+    factor = BodyObservation(
+        PartShapes(shapes.axis.to(device), shapes.radii.to(device)),
+        rig.to(device),
+        Observation(obs.silhouette.to(device), edge_distance=obs.edge_distance.to(device)),
+        cues=[Silhouette(), Edges()],
+    )
     xd = x.to(device)
     nodes = torch.arange(t * p, device=device)
     estimates = poses.reshape(1, t * p, 7).to(device)
     ours(factor, xd, nodes, estimates, sync)  # warm-up
     hyp_seg = shapes.segments(x[0].reshape(t, p, k, 7), torch.arange(p), trailing=1)
     projected = project_parts(rig, hyp_seg[0], model.radii[:, None].expand(p, k, 2).float())
-    del rig_d
     mine, whole, cv = [], [], []
     for _ in range(args.repeats):
         mine.append(ours(factor, xd, nodes, estimates, sync) / (t * p * k))

@@ -68,21 +68,5 @@ def run(cfg: NbpNoiseSweepConfig):
 
 
 def plot(path, data, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     c = data["columns"]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100)
-    for ax, name, label in ((axes[0], "e2d", "E_2D"), (axes[1], "e3d", "E_3D")):
-        ax.plot(c["noise_deg"], c[f"{name}_init"], "o-", color="0.6", label="start")
-        ax.plot(c["noise_deg"], c[name], "o-", color="C3", label="particle BP")
-        ax.set_xlabel("start noise (degrees)")
-        ax.set_ylabel(f"{label}, fraction of height")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    nbp_single_image.plot_errors(path, c["noise_deg"], c, "start noise (degrees)", title, "o")

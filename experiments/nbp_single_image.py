@@ -296,18 +296,19 @@ def _sheet(spec, rig, obs, truth, start, estimate, shown: int = 6) -> np.ndarray
     return contact_sheet(tiles, columns=len(frames), captions=captions)
 
 
-def plot(path, data, title: str) -> None:
+def plot_errors(path, x, columns: dict, xlabel: str, title: str, marker: str = "") -> None:
+    """Two panels, E_2D and E_3D (Eqs. 36-37) of the start and of the result against ``x``
+    (``columns`` holds ``e2d_init``, ``e2d``, ``e3d_init``, ``e3d``)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    c = data["columns"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), dpi=100)
     for ax, name, label in ((axes[0], "e2d", "E_2D (Eq. 36)"), (axes[1], "e3d", "E_3D (Eq. 37)")):
-        ax.plot(c["frame"], c[f"{name}_init"], color="0.6", lw=1, label="start")
-        ax.plot(c["frame"], c[name], color="C3", lw=1.5, label="particle BP")
-        ax.set_xlabel("frame")
+        ax.plot(x, columns[f"{name}_init"], marker + "-", color="0.6", lw=1, label="start")
+        ax.plot(x, columns[name], marker + "-", color="C3", lw=1.5, label="particle BP")
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(f"{label}, fraction of height")
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
@@ -315,4 +316,9 @@ def plot(path, data, title: str) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot(path, data, title: str) -> None:
+    c = data["columns"]
+    plot_errors(path, c["frame"], c, "frame", title)
     cv2.imwrite(str(Path(path).with_name("contact_sheet.png")), data["sheet"][..., ::-1])

@@ -8,6 +8,7 @@ right and ``v`` down, origin at the top-left pixel's centre as OpenCV. Distortio
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass
@@ -54,6 +55,11 @@ class CameraRig:
     @property
     def num_cameras(self) -> int:
         return self.K.shape[0]
+
+    def to(self, device: torch.device | str) -> CameraRig:
+        """The same rig with its tensors on ``device``."""
+        moved = {n: getattr(self, n).to(device) for n in ("K", "R", "t", "dist", "size")}
+        return dataclasses.replace(self, **moved)
 
     def to_camera(self, points: Tensor) -> Tensor:
         """World to camera frames. ``(..., N, 3)`` -> ``(..., C, N, 3)``."""

@@ -23,7 +23,6 @@ from torch import Tensor
 from motion.body.spec import BodySpec
 from pgm import (
     SE3,
-    AnnealingStep,
     Constant,
     Geometric,
     ParticleGraph,
@@ -108,9 +107,6 @@ class PosturePrior(UnaryFactor):
         d2 = (x[..., :3] - target[:, :, None, :3]).square().sum(-1)
         dot = (x[..., 3:7] * target[:, :, None, 3:7]).sum(-1)
         return -0.5 * d2 / self.pos_std**2 - self.kappa * (1 - dot.square())
-
-    def annealed(self, step: AnnealingStep) -> PosturePrior:
-        return self
 
 
 def relative_rotations(spec: BodySpec, poses: Tensor) -> Tensor:

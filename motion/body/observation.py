@@ -25,6 +25,7 @@ unary group, ``K`` hypotheses, ``S`` sample points, ``H x W`` images.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -634,10 +635,7 @@ class BodyObservation(UnaryFactor):
         multiplier = self.schedule(step.iteration)
         if multiplier == self.multiplier:
             return self
-        out = object.__new__(type(self))
-        out.__dict__.update(self.__dict__)
-        out.multiplier = multiplier
-        return out
+        return dataclasses.replace(self, multiplier=multiplier)
 
     @property
     def num_parts(self) -> int:

@@ -15,17 +15,11 @@ from motion.body.observation import (
     Silhouette,
     poses_from_segments,
 )
-from motion.cameras import CameraRig
 from motion.render import project_parts, silhouette
 from pgm import SE3
 from tests.motion.body.conftest import F64, side_camera, walk_segments
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-
-
-def _on(rig: CameraRig, device) -> CameraRig:
-    move = {n: getattr(rig, n).to(device) for n in ("K", "R", "t", "dist", "size")}
-    return CameraRig(**move, names=rig.names, orthographic=rig.orthographic)
 
 
 def test_every_cue_scores_the_same_on_cuda_as_on_the_cpu():
@@ -65,7 +59,7 @@ def test_every_cue_scores_the_same_on_cuda_as_on_the_cpu():
         )
         f = BodyObservation(
             PartShapes(shapes.axis.to(device), shapes.radii.to(device)),
-            _on(rig, device),
+            rig.to(device),
             obs,
             cues(device),
         )
