@@ -38,6 +38,7 @@ from motion.body.observation import (
     Silhouette,
 )
 from motion.body.polish import polish
+from motion.body.select import best_per_frame, render_residual
 from motion.body.spec import BodySpec
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
@@ -63,7 +64,13 @@ FOCAL = 300.0  # perspective focal length, pixels (motion.synth's default)
 class NbpSingleImageConfig(ExperimentConfig):
     """Fields of ``experiments/configs/nbp_single_image.yaml``."""
 
-    TINY: ClassVar[dict] = {"frames": 2, "particles": 30, "iterations": 2, "restarts": 1}
+    TINY: ClassVar[dict] = {
+        "frames": 2,
+        "particles": 30,
+        "iterations": 2,
+        "restarts": 1,
+        "starts": 1,
+    }
 
     bvh: str = setting(BUNDLED, "BVH file whose frames are rendered", path="file")
     frames: int = setting(80, "frames taken evenly from the BVH", ge=1, le=10000)
@@ -73,6 +80,13 @@ class NbpSingleImageConfig(ExperimentConfig):
     particles: int = setting(150, "particles per part", ge=2, le=5000)
     iterations: int = setting(6, "iterations per annealing run", ge=1, le=100)
     restarts: int = setting(2, "annealing runs (the proposal: 6 iterations, twice)", ge=1, le=20)
+    starts: int = setting(
+        4,
+        "independent searches (a batch of particle BP runs with different draws); per frame "
+        "the one whose rendering explains the images best is kept",
+        ge=1,
+        le=64,
+    )
     cameras: int = setting(1, "cameras on a circle around the figure", ge=1, le=16)
     camera: str = setting("orthographic", "camera model", choices=CAMERAS)
     azimuth_deg: float = setting(
@@ -234,10 +248,11 @@ def run(cfg: NbpSingleImageConfig):
         Connections(pos_std=0.02, rot_std=1.0, schedule=_anneal(cfg, 0.25)),
         Temporal() if cfg.temporal else None,
     )
-    k = cfg.particles
-    initial = SE3().perturb(start.reshape(1, t * p, 1, 7).expand(1, t * p, k, 7), (0.02, 0.1), g)
+    k, s = cfg.particles, cfg.starts
+    initial = SE3().perturb(start.reshape(1, t * p, 1, 7).expand(s, t * p, k, 7), (0.02, 0.1), g)
     note(
-        f"nbp_single_image: {t} frames x {p} parts x {k} particles, {cfg.restarts} x {it} iterations"
+        f"nbp_single_image: {t} frames x {p} parts x {k} particles, {cfg.restarts} x {it} "
+        f"iterations, {s} searches"
     )
     t0 = time.perf_counter()
     result = particle_bp(
@@ -252,10 +267,14 @@ def run(cfg: NbpSingleImageConfig):
         kernel_schedule=_anneal(cfg, cfg.kernel_end),
         proposal_centres=min(30, k),
     )
-    estimate = result.best[0].reshape(t, p, 7)
+    colours = torch.from_numpy(PART_COLOURS[:p].astype(np.float32) / 255)
+    colours = colours if "intensity" in cfg.cues else None
+    searches = result.best.reshape(s, t, p, 7)
+    estimate, _ = best_per_frame(
+        searches, render_residual(shapes, rig, obs, searches, colours, cfg.intensity_weight)
+    )
     if cfg.polish:
-        colours = torch.from_numpy(PART_COLOURS[:p].astype(np.float32) / 255)
-        estimate = polish(spec, rig, obs, estimate, colours if "intensity" in cfg.cues else None)
+        estimate = polish(spec, rig, obs, estimate, colours)
     seconds = time.perf_counter() - t0
     e2_init, e3_init = _errors(spec, rig, truth, start)
     e2, e3 = _errors(spec, rig, truth, estimate)

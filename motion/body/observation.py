@@ -218,7 +218,8 @@ class RestLayers:
     """The two nearest part surfaces at every pixel.
 
     Attributes:
-        label: ``(B, T, C, H, W)`` long, the nearest part (-1 for none).
+        label, second_label: ``(B, T, C, H, W)`` long, the nearest and the second nearest
+            part (-1 for none).
         near, second: ``(B, T, C, H, W)`` depth (metres) of the nearest and the second
             nearest part surface (inf where there is none).
     """
@@ -226,6 +227,7 @@ class RestLayers:
     label: Tensor
     near: Tensor
     second: Tensor
+    second_label: Tensor
 
     @classmethod
     def empty(cls, shape: Sequence[int], like: Tensor) -> RestLayers:
@@ -233,7 +235,7 @@ class RestLayers:
         ablation). ``shape`` is ``(B, T, C, H, W)``."""
         inf = torch.full(tuple(shape), math.inf, dtype=like.dtype, device=like.device)
         label = torch.full(tuple(shape), -1, dtype=torch.long, device=like.device)
-        return cls(label, inf, inf)
+        return cls(label, inf, inf, label)
 
 
 def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) -> RestLayers:
@@ -263,6 +265,7 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
     box = torch.tensor([box_w, box_h], dtype=dtype, device=dev)
     origin = torch.minimum(top_left, limit + 1 - box).clamp(min=0)  # boxes inside the image
     label = torch.full((n, height * width), -1, dtype=torch.long, device=dev)
+    second_label = label.clone()
     near = torch.full((n, height * width), math.inf, dtype=dtype, device=dev)
     second = near.clone()
     u = torch.arange(box_w, dtype=dtype, device=dev)
@@ -276,15 +279,23 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
         if p >= 2:
             top2, idx = torch.topk(z, 2, dim=-2, largest=False)
             first, nxt = top2[:, 0], top2[:, 1]
+            idx_next = idx[:, 1]
         else:
             first, idx = z.min(-2, keepdim=True)
             first, nxt = first[:, 0], torch.full_like(first[:, 0], math.inf)
+            idx_next = torch.zeros_like(idx[:, 0])
         flat = (pixels[..., 1] * width + pixels[..., 0]).long()  # (n, m)
         near.scatter_(1, flat, first)
         second.scatter_(1, flat, nxt)
         label.scatter_(1, flat, torch.where(torch.isfinite(first), idx[:, 0], -1))
+        second_label.scatter_(1, flat, torch.where(torch.isfinite(nxt), idx_next, -1))
     shape = (*lead, height, width)
-    return RestLayers(label.reshape(shape), near.reshape(shape), second.reshape(shape))
+    return RestLayers(
+        label.reshape(shape),
+        near.reshape(shape),
+        second.reshape(shape),
+        second_label.reshape(shape),
+    )
 
 
 # -- observations ----------------------------------------------------------------------------
@@ -343,6 +354,7 @@ class PartSamples:
         depth: the part's depth at each point (metres).
         inside: the point lies in the image.
         rest_depth: depth of the rest of the body there (inf: uncovered).
+        rest_label: the part of the rest of the body in front there (-1: uncovered).
         flat: index of each point's pixel in the flattened ``(B, T, C, H, W)`` maps.
     """
 
@@ -351,6 +363,7 @@ class PartSamples:
     depth: Tensor
     inside: Tensor
     rest_depth: Tensor
+    rest_label: Tensor
     flat: Tensor
     batch_maps: int  # B of the maps the index was made for (1: shared by the batch)
     image_base: Tensor  # index of each point's image's first pixel in the flattened maps
@@ -489,22 +502,35 @@ class Edges(Cue):
 
 @dataclass
 class Intensity(Cue):
-    """Per-part appearance: ``-weight * sum over owned area of |I - colour_p|^2 / (2 sigma^2)``
-    (nats per pixel). ``colours``: ``(P, 3)`` in [0, 1]."""
+    """Per-part appearance, in nats per pixel: where part j is in front, the image should
+    show its colour, ``cost_j = |I - colour_j|^2 / (2 sigma^2)``.
+
+    With ``replaces_rest`` (default) the score is what placing j changes in the whole
+    body's colour likelihood: on each pixel j owns, the part of the rest it covers up (if
+    any) no longer has to explain that pixel, ``-weight * sum over owned area of (cost_j -
+    cost_rest)`` -- so an arm gains by lying in front of the torso where the image shows the
+    arm's colour (without this term, hiding behind the torso would cost nothing). Without
+    it, ``-weight * sum over owned area of cost_j``. ``colours``: ``(P, 3)`` in [0, 1].
+    """
 
     colours: Tensor
     weight: float = 0.05
     sigma: float = 0.1
+    replaces_rest: bool = True
 
     def score(self, samples, obs):
         if obs.image is None:
             raise ValueError("the Intensity cue needs Observation.image")
         inner = samples.interior
         seen = inner.gather(obs.image)  # (B, N, C, K, S, 3)
-        colour = self.colours.to(seen)[samples.parts.to(seen.device)]  # (N, 3)
-        diff = (seen - colour[None, :, None, None, None, :]).square().sum(-1)
-        cost = diff / (2 * self.sigma**2)
-        return -self.weight * (inner.weight * inner.own * cost).sum(-1)
+        colours = self.colours.to(seen)
+        colour = colours[samples.parts.to(seen.device)]  # (N, 3)
+        cost = (seen - colour[None, :, None, None, None, :]).square().sum(-1)
+        if self.replaces_rest:
+            covered = inner.rest_label >= 0
+            rest = colours[inner.rest_label.clamp_min(0)]  # (B, N, C, K, S, 3)
+            cost = cost - covered * (seen - rest).square().sum(-1)
+        return -self.weight / (2 * self.sigma**2) * (inner.weight * inner.own * cost).sum(-1)
 
 
 @dataclass
@@ -706,4 +732,7 @@ class BodyObservation(UnaryFactor):
         rest_depth = torch.where(
             own_label, layers.second.reshape(-1)[flat], layers.near.reshape(-1)[flat]
         )
-        return PartSamples(points, weight, depth, inside, rest_depth, flat, b, base.expand_as(flat))
+        rest_label = torch.where(own_label, layers.second_label.reshape(-1)[flat], label)
+        return PartSamples(
+            points, weight, depth, inside, rest_depth, rest_label, flat, b, base.expand_as(flat)
+        )
