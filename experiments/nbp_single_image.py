@@ -6,10 +6,14 @@ Canny edges and their distance transform, exactly as ``motion.features`` compute
 video -- and, per frame, a start posture: the truth with uniform noise of +-``noise_deg`` on
 every angle of every part's joint (the root's orientation and position kept). Particle BP
 over the body graph of ``motion.body`` (15 SE(3) parts, annealed connections, the
-occlusion-aware observation factor with the chosen cues) refines it; errors are the
-proposal's E_2D and E_3D (Eqs. 36-37): mean landmark distance over the figure's height, in
-camera 0's image and in 3-D. Writes per-frame errors, Figs. 14-15-style curves and a contact
-sheet of truth / start / result overlays.
+occlusion-aware observation factor with the chosen cues) refines it, as ``starts``
+independent searches (one batch) of which each frame keeps the one whose rendering explains
+the images best (:mod:`motion.body.select`); errors are the proposal's E_2D and E_3D (Eqs.
+36-37): mean landmark distance over the figure's height, in camera 0's image and in 3-D.
+``e3d_depth_oracle_mean`` is E_3D once every part's depth flip in camera 0 and the body's
+depth are set right (:mod:`motion.body.ambiguity`): the error one orthographic view could in
+principle remove. Writes per-frame errors, Figs. 14-15-style curves and a contact sheet of
+truth / start / result overlays.
 """
 
 from __future__ import annotations
@@ -23,10 +27,12 @@ from typing import ClassVar
 import cv2
 import numpy as np
 import torch
+from torch import Tensor
 
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note
 from experiments.stick_time import BUNDLED
+from motion.body.ambiguity import resolve_depth_flips
 from motion.body.graph import Connections, Temporal, body_graph
 from motion.body.observation import (
     BodyObservation,
@@ -97,6 +103,11 @@ class NbpSingleImageConfig(ExperimentConfig):
     )
     intensity_weight: float = setting(
         0.05, "nats per pixel of the intensity cue (colour distance / 2 sigma^2)", gt=0, le=100
+    )
+    intensity_two_way: bool = setting(
+        True,
+        "the intensity cue scores a part's colour cost less that of the rest it covers up "
+        "(False: its own cost only, so hiding behind another part is free)",
     )
     polish: bool = setting(False, "gradient polish of the BP estimate on the soft renderer")
     annealing: bool = setting(True, "anneal the connections and the proposal kernels")
@@ -205,7 +216,9 @@ def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
     make = {
         "silhouette": lambda: Silhouette(1.0, 1.0, smooth=cfg.smooth),
         "edges": lambda: Edges(0.2, smooth=cfg.smooth),
-        "intensity": lambda: Intensity(colours, cfg.intensity_weight),
+        "intensity": lambda: Intensity(
+            colours, cfg.intensity_weight, replaces_rest=cfg.intensity_two_way
+        ),
         "joints": lambda: Joints2D(torch.arange(2 * spec.num_parts).reshape(-1, 2), 1.0, 4.0),
     }
     return [make[c]() for c in cfg.cues]
@@ -229,6 +242,16 @@ def _errors(spec: BodySpec, rig: CameraRig, truth: torch.Tensor, poses: torch.Te
     h2 = uv_ref[:, 0, :, 1].amax(-1) - uv_ref[:, 0, :, 1].amin(-1)
     e2 = (uv[:, 0] - uv_ref[:, 0]).norm(dim=-1).mean(-1) / h2
     return e2.double(), e3.double()
+
+
+def _e3d_depth_oracle(spec: BodySpec, rig: CameraRig, truth: Tensor, poses: Tensor) -> Tensor:
+    """E_3D per frame once every part's depth flip in camera 0 and the body's depth are set
+    right (:func:`motion.body.ambiguity.resolve_depth_flips`): what is left when what one
+    orthographic view cannot see is given."""
+    ref = spec.landmarks(truth)
+    est = resolve_depth_flips(spec.parents, spec.landmarks(poses), ref, rig.R[0, 2])
+    height = ref[..., 1].flatten(1).amax(-1) - ref[..., 1].flatten(1).amin(-1)
+    return ((est - ref).norm(dim=-1).flatten(1).mean(-1) / height).double()
 
 
 def run(cfg: NbpSingleImageConfig):
@@ -283,6 +306,7 @@ def run(cfg: NbpSingleImageConfig):
         "e2d_mean": float(e2.mean()),
         "e3d_init_mean": float(e3_init.mean()),
         "e3d_mean": float(e3.mean()),
+        "e3d_depth_oracle_mean": float(_e3d_depth_oracle(spec, rig, truth, estimate).mean()),
         "sec_per_frame": seconds / t,
     }
     columns = {

@@ -31,7 +31,13 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         for m in ("c_err_mean", "c_err_outside_mean", "c_err_inside_mean")
         for method in ("dtw", "chain", "robust")
     ],
-    "nbp_single_image": ["e2d_init_mean", "e2d_mean", "e3d_init_mean", "e3d_mean"],
+    "nbp_single_image": [
+        "e2d_init_mean",
+        "e2d_mean",
+        "e3d_init_mean",
+        "e3d_mean",
+        "e3d_depth_oracle_mean",
+    ],
     "nbp_noise_sweep": ["e2d_mean_at_0", "e3d_mean_at_0", "e2d_mean_at_30", "e3d_mean_at_30"],
     "nbp_ablation": ["e2d_mean_full", "e3d_mean_full", "e2d_mean_bpmc", "e3d_mean_bpmc"],
 }
