@@ -4,7 +4,9 @@ The body model is data (``motion/data/bodyparts/parts.yaml``): 15 tapered capsul
 between two semantic landmarks (roles such as ``knee_l``) with two radii in metres. A
 skeleton's joints are mapped to the roles automatically for the common BVH naming
 conventions (``roles.yaml`` lists them and where each was seen), or by a spec file with the
-same keys; what cannot be mapped is reported part by part.
+same keys; what cannot be mapped is reported part by part. Another articulated object is
+another parts file (``parts=``): its own parts, roles and parent tree -- or one spec file
+holding ``parts`` and ``roles`` together (``motion/data/examples/robot_arm.yaml``).
 
 A role is the mean of one or more *points*: joint positions, End Site positions written
 ``NAME.end``, or -- where a skeleton has no joint or End Site for a hand's or a foot's far
@@ -28,6 +30,7 @@ from torch import Tensor
 from motion.kinematics import FKResult, Skeleton
 
 __all__ = [
+    "DEFAULT_PARTS",
     "FOOT_END_M",
     "HAND_END_M",
     "BodyModel",
@@ -38,9 +41,13 @@ __all__ = [
     "joint_of_point",
     "load_spec",
     "map_roles",
+    "parts_file",
+    "read_parts",
 ]
 
 DATA = Path(__file__).resolve().parent / "data" / "bodyparts"
+#: the human body model: 15 capsules (every default of this module)
+DEFAULT_PARTS = DATA / "parts.yaml"
 
 TIP = ".tip"  # suffix of a synthesized end point
 # Synthesized ends, measured on the shared CMU files (rest pose, metres): wrist to the middle
@@ -77,17 +84,52 @@ def _read_yaml(path: Path) -> dict:
 def load_spec(name_or_path: str | Path) -> dict[str, list[str]]:
     """A role -> point-names mapping from a spec file (a path, or a bundled name such as
     ``"cmu_cgspeed"``, ``"cmu_daz"``, ``"pose2sim_21"``)."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = DATA / f"{name_or_path}.yaml"
+    path = _spec_path(name_or_path)
     spec = _read_yaml(path)
     if "roles" not in spec or not isinstance(spec["roles"], dict):
         raise BodyPartMappingError(f"{path}: expected a 'roles' mapping of role -> joint name(s)")
     return {r: [v] if isinstance(v, str) else list(v) for r, v in spec["roles"].items()}
 
 
-def _parts() -> dict[str, dict]:
-    return _read_yaml(DATA / "parts.yaml")["parts"]
+def _spec_path(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    return path if path.suffix else DATA / f"{name_or_path}.yaml"
+
+
+def parts_file(parts: str | Path | None = None, spec=None) -> Path:
+    """The parts file to use: ``parts`` if given, else the roles spec file itself when it
+    lists ``parts`` (an object described by one file), else :data:`DEFAULT_PARTS`."""
+    if parts is not None:
+        return Path(parts)
+    if isinstance(spec, str | Path) and "parts" in _read_yaml(_spec_path(spec)):
+        return _spec_path(spec)
+    return DEFAULT_PARTS
+
+
+def read_parts(path: str | Path | None = None) -> dict[str, dict]:
+    """``{part: {from, to, radii, parent}}`` of a parts file (default :data:`DEFAULT_PARTS`).
+
+    Raises:
+        BodyPartMappingError: naming the file, when it has no ``parts`` mapping or a part
+            lacks ``from``, ``to`` or two positive ``radii``.
+    """
+    path = Path(path or DEFAULT_PARTS)
+    parts = _read_yaml(path).get("parts")
+    if not isinstance(parts, dict) or not parts:
+        raise BodyPartMappingError(f"{path}: expected a 'parts' mapping of part -> entry")
+    for name, d in parts.items():
+        ok = isinstance(d, dict) and isinstance(d.get("from"), str) and isinstance(d.get("to"), str)
+        radii = d.get("radii") if isinstance(d, dict) else None
+        if not ok or not (
+            isinstance(radii, list)
+            and len(radii) == 2
+            and all(isinstance(r, int | float) and r > 0 for r in radii)
+        ):
+            raise BodyPartMappingError(
+                f"{path}: part {name!r} needs 'from' and 'to' roles and two radii > 0 in "
+                f"metres; got {d!r}"
+            )
+    return parts
 
 
 # Rig prefixes that carry no meaning: 3ds Max Biped ("Bip01 ", "Bip001 "), Valve's
@@ -147,7 +189,10 @@ def _fallback_end(role: str, mapping: dict, end_site_joints: list[str]) -> list[
 
 
 def map_roles(
-    joint_names: list[str], end_site_joints: list[str], spec: dict | str | Path | None = None
+    joint_names: list[str],
+    end_site_joints: list[str],
+    spec: dict | str | Path | None = None,
+    parts: str | Path | None = None,
 ) -> dict[str, list[str]]:
     """Map every role the parts need to point names of this skeleton.
 
@@ -161,6 +206,8 @@ def map_roles(
         joint_names: the skeleton's joints (compared by :func:`canonical_name`).
         end_site_joints: joints that have an End Site (their ``.end`` points exist).
         spec: explicit mapping (dict or spec file) used before the automatic table.
+        parts: the parts file whose roles are mapped (default: :func:`parts_file` -- the
+            spec file's own ``parts`` if it has them, else the human body model).
 
     Returns:
         role -> list of point names as they appear in the skeleton (``NAME``, ``NAME.end`` or
@@ -199,7 +246,7 @@ def map_roles(
             if got is not None:
                 mapping[role] = got
 
-    parts = _parts()
+    parts = read_parts(parts_file(parts, spec))
     mapping: dict[str, list[str]] = {}
     for d in parts.values():
         assign(d["from"], None)
@@ -265,6 +312,8 @@ def _synthesized_offsets(skeleton: Skeleton, mapping: dict[str, list[str]]) -> d
 
     out: dict[int, Tensor] = {}
     for end, (proximal, kind) in _FALLBACK_ENDS.items():
+        if end not in mapping:  # a parts file without this role (another object)
+            continue
         tip = mapping[end][0]
         if not tip.endswith(TIP):
             continue
@@ -294,6 +343,8 @@ class BodyModel:
         mapping: role -> point names used.
         synthesized: ``{joint: (3,) offset in metres}`` of the synthesized ``NAME.tip``
             points, in point order after the End Sites (empty for most skeletons).
+        parts_path: the parts file the model was built from (:data:`DEFAULT_PARTS`: the
+            human body); :class:`motion.body.BodySpec` reads the part tree from it.
     """
 
     part_names: list[str]
@@ -303,10 +354,19 @@ class BodyModel:
     radii: Tensor
     mapping: dict[str, list[str]]
     synthesized: dict[int, Tensor] = field(default_factory=dict)
+    parts_path: Path = DEFAULT_PARTS
 
     @classmethod
-    def from_points(cls, point_names: list[str], mapping: dict[str, list[str]]) -> BodyModel:
-        parts = _parts()
+    def from_points(
+        cls,
+        point_names: list[str],
+        mapping: dict[str, list[str]],
+        parts: str | Path | None = None,
+    ) -> BodyModel:
+        """The parts of ``parts`` (default :data:`DEFAULT_PARTS`) over named points, each
+        role the mean of the points ``mapping`` gives it."""
+        path = Path(parts or DEFAULT_PARTS)
+        parts = read_parts(path)
         roles = sorted(mapping)
         index = {n: i for i, n in enumerate(point_names)}
         w = torch.zeros(len(roles), len(point_names), dtype=torch.float64)
@@ -320,33 +380,48 @@ class BodyModel:
         part_roles = torch.tensor(
             [[role_index[parts[p]["from"]], role_index[parts[p]["to"]]] for p in names]
         )
+        missing = sorted(
+            {r for p in names for r in (parts[p]["from"], parts[p]["to"])} - set(roles)
+        )
+        if missing:
+            raise BodyPartMappingError(f"{path}: no points for the roles {missing}")
         radii = torch.tensor([parts[p]["radii"] for p in names], dtype=torch.float64)
-        return cls(names, roles, w, part_roles, radii, mapping)
+        return cls(names, roles, w, part_roles, radii, mapping, parts_path=path)
 
     @classmethod
-    def from_skeleton(cls, skeleton: Skeleton, spec: dict | str | Path | None = None) -> BodyModel:
-        """Map a skeleton's joints (and End Sites) to the body parts; a missing hand or foot
-        end is synthesized (:func:`map_roles`, :class:`SynthesizedEndWarning`)."""
+    def from_skeleton(
+        cls,
+        skeleton: Skeleton,
+        spec: dict | str | Path | None = None,
+        parts: str | Path | None = None,
+    ) -> BodyModel:
+        """Map a skeleton's joints (and End Sites) to the parts of ``parts``
+        (:func:`parts_file`: by default the spec file's own ``parts`` if it lists them, else
+        the human body model); a missing hand or foot end is synthesized
+        (:func:`map_roles`, :class:`SynthesizedEndWarning`)."""
+        parts = parts_file(parts, spec)
         end_joints = [skeleton.names[j] for j in skeleton.end_sites]
-        mapping = map_roles(skeleton.names, end_joints, spec)
+        mapping = map_roles(skeleton.names, end_joints, spec, parts)
         synthesized = _synthesized_offsets(skeleton, mapping)
         points = (
             list(skeleton.names)
             + [n + ".end" for n in end_joints]
             + [skeleton.names[j] + TIP for j in synthesized]
         )
-        model = cls.from_points(points, mapping)
+        model = cls.from_points(points, mapping, parts)
         model.synthesized = synthesized
         return model
 
     @classmethod
-    def from_keypoints(cls, spec: str | Path = "pose2sim_21") -> BodyModel:
+    def from_keypoints(
+        cls, spec: str | Path = "pose2sim_21", parts: str | Path | None = None
+    ) -> BodyModel:
         """For a keypoint set without hierarchy, from a spec listing its ``markers``."""
-        path = Path(spec) if Path(spec).suffix else DATA / f"{spec}.yaml"
+        path = _spec_path(spec)
         raw = _read_yaml(path)
         if "markers" not in raw:
             raise BodyPartMappingError(f"{path}: a keypoint spec needs a 'markers' list")
-        return cls.from_points(list(raw["markers"]), load_spec(path))
+        return cls.from_points(list(raw["markers"]), load_spec(path), parts_file(parts, path))
 
     @property
     def num_parts(self) -> int:

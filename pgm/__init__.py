@@ -26,6 +26,7 @@ from pgm.factors import (
     TableFactor,
 )
 from pgm.graph import FactorGraph, GraphError, NotATreeError
+from pgm.limits import EulerBox, LimitedConnection
 from pgm.loopy import loopy_bp
 from pgm.particle_bp import IterationStats, ParticleGraph, ParticleResult, particle_bp
 from pgm.schedules import Constant, Geometric, Linear, Schedule, Stepwise
@@ -50,6 +51,7 @@ __all__ = [
     "CountingSemiring",
     "Discrete",
     "Euclidean",
+    "EulerBox",
     "FactorGraph",
     "FactorWrapper",
     "GaussianUnary",
@@ -58,6 +60,7 @@ __all__ = [
     "InfeasibleError",
     "InferenceResult",
     "IterationStats",
+    "LimitedConnection",
     "Linear",
     "LinearGaussian",
     "LogSemiring",

@@ -14,7 +14,17 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_quaternion, quaternion_to_axis_angle
 from torch import Tensor
 
-__all__ = ["angle_from_dot", "qangle", "qconj", "qexp", "qlog", "qmul", "qnormalize", "qrotate"]
+__all__ = [
+    "angle_from_dot",
+    "qangle",
+    "qconj",
+    "qexp",
+    "qlog",
+    "qmatrix",
+    "qmul",
+    "qnormalize",
+    "qrotate",
+]
 
 
 def qmul(a: Tensor, b: Tensor) -> Tensor:
@@ -57,6 +67,24 @@ def qrotate(q: Tensor, v: Tensor) -> Tensor:
             vz + w * tz + (x * ty - y * tx),
         ],
         -1,
+    )
+
+
+def qmatrix(q: Tensor) -> Tensor:
+    """Rotation matrix of a quaternion (normalised on the way, so a slightly off-unit
+    particle gives a rotation): ``R v = qrotate(q, v)``. Shapes: (..., 4) -> (..., 3, 3)."""
+    w, x, y, z = q.unbind(-1)
+    s = 2.0 / (q * q).sum(-1).clamp_min(torch.finfo(q.dtype).tiny)
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    return torch.stack(
+        (
+            torch.stack((1 - yy - zz, xy - wz, xz + wy), -1),
+            torch.stack((xy + wz, 1 - xx - zz, yz - wx), -1),
+            torch.stack((xz - wy, yz + wx, 1 - xx - yy), -1),
+        ),
+        -2,
     )
 
 

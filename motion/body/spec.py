@@ -1,8 +1,11 @@
 """A body as data: rigid parts in SE(3), the tree that joins them, and where they join.
 
-Built from a skeleton and a reference motion, with nothing specific to one skeleton: the
-parts and their tree come from the body-part spec (``motion/data/bodyparts/parts.yaml``: each
-part's landmarks, radii and ``parent``), the joints' positions from the motion. Each part's
+Built from a skeleton and a reference motion, with nothing specific to one skeleton or to
+bodies: the parts and their tree come from the parts file the :class:`BodyModel` was built
+from (by default the human ``motion/data/bodyparts/parts.yaml``; each part's landmarks, radii
+and ``parent``), the joints' positions from the motion, and optional joint-angle limits per
+kinematic edge from a limits file (:mod:`motion.body.limits`). A new articulated object is a
+spec file (``motion/data/examples/robot_arm.yaml``), not new code. Each part's
 *frame* is the global rotation of one skeleton joint on the chain between its two landmarks
 -- the one in whose frame the part's far landmark and its children's joints move least over
 the reference motion (a single bone: exactly rigid; a chain such as the spine: its stiffest
@@ -17,16 +20,20 @@ A part's pose is ``(x, y, z, qw, qx, qy, qz)``: its proximal landmark in metres 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import yaml
 from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from torch import Tensor
 
+from motion.body.limits import EdgeLimits, edge_limits
 from motion.body.observation import PartShapes
-from motion.bodyparts import DATA, BodyModel, joint_of_point
+from motion.bodyparts import BodyModel, joint_of_point, read_parts
 from motion.kinematics import FKResult, Skeleton
+from motion.limits import load_limits
 
 __all__ = ["BodySpec", "BodySpecError", "part_tree"]
 
@@ -36,9 +43,10 @@ class BodySpecError(ValueError):
 
 
 def part_tree(model: BodyModel, path=None) -> Tensor:
-    """``(P,)`` long, the parent part of each part (-1 for the root) from the spec's
-    ``parent`` entries, checked to form one tree."""
-    path = path or DATA / "parts.yaml"
+    """``(P,)`` long, the parent part of each part (-1 for the root) from the parts file's
+    ``parent`` entries (default: the file ``model`` was built from), checked to form one
+    tree."""
+    path = Path(path or model.parts_path)
     spec = yaml.safe_load(path.read_text())["parts"]
     index = {name: i for i, name in enumerate(model.part_names)}
     parents = []
@@ -80,6 +88,8 @@ class BodySpec:
         from_roles, to_roles: ``(P,)`` long, the landmark roles at each part's ends.
         rigidity: ``(P,)`` metres, the mean distance the part's far landmark and its
             children's joints move in its frame over the reference motion (0: rigid).
+        limits: joint-angle limits per kinematic edge, in :attr:`edges` order
+            (:class:`~motion.body.limits.EdgeLimits`), or ``None``: unlimited.
     """
 
     part_names: list[str]
@@ -90,6 +100,7 @@ class BodySpec:
     from_roles: Tensor
     to_roles: Tensor
     rigidity: Tensor
+    limits: EdgeLimits | None = None
 
     @property
     def num_parts(self) -> int:
@@ -112,13 +123,27 @@ class BodySpec:
         return torch.sort(depth, stable=True).indices
 
     @classmethod
-    def from_motion(cls, skeleton: Skeleton, model: BodyModel, fk: FKResult) -> BodySpec:
+    def from_motion(
+        cls,
+        skeleton: Skeleton,
+        model: BodyModel,
+        fk: FKResult,
+        limits: dict | str | Path | None = None,
+    ) -> BodySpec:
         """The spec of ``model`` on ``skeleton``, with frames, axes and offsets measured on
-        the reference motion ``fk`` (``(T, J, ...)``; a single frame gives a rest pose)."""
+        the reference motion ``fk`` (``(T, J, ...)``; a single frame gives a rest pose).
+
+        Args:
+            limits: per-BVH-joint Euler limits (:mod:`motion.limits`: a ``{joint: {axis:
+                [lo, hi]}}`` mapping in degrees, a bundled name such as ``"cmu_cgspeed"``
+                or a file), turned into per-edge limits (:func:`~motion.body.limits.
+                edge_limits`). ``None``: the parts file's own ``limits`` entry if it has one
+                (inline, or a name or a path relative to that file), else no limits.
+        """
         parents = part_tree(model)
         landmarks = model.landmarks(model.skeleton_points(skeleton, fk))  # (T, R, 3)
         roles = {r: i for i, r in enumerate(model.roles)}
-        spec = yaml.safe_load((DATA / "parts.yaml").read_text())["parts"]
+        spec = read_parts(model.parts_path)
         from_roles = torch.tensor([roles[spec[p]["from"]] for p in model.part_names])
         to_roles = torch.tensor([roles[spec[p]["to"]] for p in model.part_names])
         joints = [_chain(skeleton, model, spec[p]) for p in model.part_names]
@@ -140,7 +165,7 @@ class BodySpec:
             if p >= 0:
                 rel = landmarks[:, from_roles[q]] - landmarks[:, from_roles[p]]
                 offsets[q] = _in_frame(rot[:, p], rel).mean(0)
-        return cls(
+        out = cls(
             list(model.part_names),
             parents,
             PartShapes(axes, model.radii.to(axes)),
@@ -150,6 +175,10 @@ class BodySpec:
             to_roles,
             torch.tensor(rigidity, dtype=landmarks.dtype),
         )
+        table = _joint_limits(model.parts_path, limits)
+        if table is None:
+            return out
+        return dataclasses.replace(out, limits=edge_limits(out, skeleton, table))
 
     def poses(self, model: BodyModel, skeleton: Skeleton, fk: FKResult) -> Tensor:
         """Part poses of a skeleton posture: ``(..., P, 7)`` (proximal landmark, frame)."""
@@ -164,6 +193,17 @@ class BodySpec:
         """Both end landmarks of every part from part poses: ``(..., P, 7)`` ->
         ``(..., P, 2, 3)`` (the capsules' segments)."""
         return self.shapes.segments(poses, torch.arange(self.num_parts))
+
+
+def _joint_limits(parts_path: Path, limits) -> dict | None:
+    """Per-joint limits (degrees) from an argument or the parts file's ``limits`` entry."""
+    if limits is None:
+        limits = (yaml.safe_load(Path(parts_path).read_text()) or {}).get("limits")
+        if isinstance(limits, str) and Path(limits).suffix:
+            limits = Path(parts_path).parent / limits  # relative to the parts file
+    if limits is None or isinstance(limits, dict):
+        return limits
+    return load_limits(limits)
 
 
 def _chain(skeleton: Skeleton, model: BodyModel, part: dict) -> list[int]:

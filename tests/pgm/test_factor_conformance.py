@@ -40,9 +40,11 @@ from pgm import (
     CountingSemiring,
     Discrete,
     Euclidean,
+    EulerBox,
     FactorWrapper,
     GaussianUnary,
     Geometric,
+    LimitedConnection,
     LinearGaussian,
     LogSemiring,
     LookupGaussian,
@@ -118,6 +120,32 @@ def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True, rot
     off_b = _rand(3, 3, seed=12, scale=0.05).repeat(repeat, 1)
     rel_rot = qexp(_rand(3, 3, seed=13, scale=0.2)).repeat(repeat, 1) if rel else None
     return RigidConnection(off_a, off_b, 0.05, rot_std, rel_rot, schedule, rotation, rot_schedule)
+
+
+def _limited(repeat, rotation="bingham", per_edge=True):
+    """A connection with Euler-box limits around its mean relative rotation: per-edge boxes
+    in three orders (one with a free channel, one that excludes the mean), or one shared
+    box; spreads such that the acceptance rate is ~0.3-0.9."""
+    rigid = _rigid(repeat, rotation, rot_std=0.4)
+    inf = math.inf
+    if per_edge:
+        lower = torch.tensor([[-0.45, -0.35, -0.6], [-inf, -0.25, -0.05], [0.1, -0.5, -0.4]])
+        upper = torch.tensor([[0.35, 0.5, 0.55], [inf, 0.45, 0.7], [0.6, 0.05, 0.2]])
+        box = EulerBox(
+            lower.repeat(repeat, 1), upper.repeat(repeat, 1), ["ZYX", "XZY", "YXZ"] * repeat, 0.1
+        )
+    else:
+        box = EulerBox([-0.35, -0.4, -0.2], [0.4, 0.3, 0.5], "ZXY", 0.15)
+    return LimitedConnection(
+        rigid.offset_a,
+        rigid.offset_b,
+        rigid.pos_std,
+        rigid.rot_std,
+        rigid.rel_rot,
+        rigid.schedule,
+        rotation,
+        limits=box,
+    )
 
 
 def _float64(build):
@@ -203,6 +231,9 @@ CASES = [
         "se3",
         12,
     ),
+    Case("limited-bingham", _float64(_limited), "se3", 12),
+    Case("limited-gaussian", _float64(lambda r: _limited(r, "gaussian")), "se3", 12),
+    Case("limited-shared-box", _float64(lambda r: _limited(r, per_edge=False)), "se3", 12),
     Case(
         "lookup-gaussian",
         lambda r: LookupGaussian(_rand(6, 2, seed=9), torch.tensor([0.4, 0.6], dtype=F64)),
