@@ -41,6 +41,7 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         {"intensity_two_way": False},
     ),
     "one_search": ("one search (no choice among 4 by the image residual)", {"starts": 1}),
+    "limits": ("+ joint-angle limits (cmu_cgspeed)", {"limits": "cmu_cgspeed"}),
     "bpmc": ("BPMC-style proposal (own marginal only)", {"proposal": "own"}),
     "particles_50": ("50 particles", {"particles": 50}),
     "particles_500": ("500 particles", {"particles": 500}),

@@ -109,6 +109,11 @@ class NbpSingleImageConfig(ExperimentConfig):
         "the intensity cue scores a part's colour cost less that of the rest it covers up "
         "(False: its own cost only, so hiding behind another part is free)",
     )
+    limits: str = setting(
+        "",
+        "joint-angle limits on the kinematic edges: a bundled limits name (cmu_cgspeed, "
+        "cmu_daz) or a limits file; empty: none",
+    )
     polish: bool = setting(False, "gradient polish of the BP estimate on the soft renderer")
     annealing: bool = setting(True, "anneal the connections and the proposal kernels")
     smooth: bool = setting(False, "bilinear reads of the silhouette and edge maps")
@@ -170,7 +175,8 @@ def _postures(cfg: NbpSingleImageConfig, g: torch.Generator):
             f"frames must be <= {motion.shape[0]} (the BVH's frames); got {cfg.frames}"
         )
     rot, root = local_rotations(skeleton, motion, bvh.channels)
-    spec = BodySpec.from_motion(skeleton, model, forward_kinematics(skeleton, rot, root))
+    fk = forward_kinematics(skeleton, rot, root)
+    spec = BodySpec.from_motion(skeleton, model, fk, limits=cfg.limits or None)
     step = 1 if cfg.temporal else max(1, motion.shape[0] // cfg.frames)
     frames = torch.arange(cfg.frames) * step
     rot, root = rot[frames], root[frames]
@@ -268,7 +274,7 @@ def run(cfg: NbpSingleImageConfig):
         spec,
         t,
         [(torch.arange(t * p), unary)],
-        Connections(pos_std=0.02, rot_std=1.0, schedule=_anneal(cfg, 0.25)),
+        Connections(pos_std=0.02, rot_std=1.0, schedule=_anneal(cfg, 0.25), limits=spec.limits),
         Temporal() if cfg.temporal else None,
     )
     k, s = cfg.particles, cfg.starts
