@@ -1,8 +1,15 @@
 """Command line of the experiments.
 
-  python -m experiments run CONFIG.yaml [key=value ...]
+  python -m experiments run CONFIG.yaml [key=value ...] [--backend ray [--address ADDRESS]]
+                                 [--cpus-per-task N] [--force]
       run a config (seed=, out_dir= and tiny=true are always accepted; values are YAML,
-      e.g. methods=[dtw,robust]); results go to out_dir (metrics.json, timings.json, ...)
+      e.g. methods=[dtw,robust]); results go to out_dir (metrics.json, timings.json, ...).
+      --backend sequential (default): the runs one after another in this process;
+      --backend ray: each sweep entry a Ray task (pip install .[distributed]) on a local Ray
+      started for the command, or with --address auto / ray://HOST:PORT on that cluster;
+      --cpus-per-task: CPUs (= torch threads) per Ray task, default 1. A run whose folder
+      holds a record of the same resolved config is not rerun; --force reruns it. Runs that
+      fail are reported by label, the others finish, and the command exits with status 1.
   python -m experiments list
       the experiments, their config files and every field (type, range, default, meaning)
   python -m experiments demo [--bvh FILE] [--seed N] [--out-dir DIR]
@@ -10,6 +17,8 @@
 
 Bad input (a config mistake, an unknown key, a value out of range, a missing file) prints
 one line, "error: ...", to stderr and exits with status 2; --debug shows the traceback too.
+A sweep whose runs partly fail prints one line naming them and exits with status 1 (--debug:
+each failed run's traceback first).
 """
 
 from __future__ import annotations
@@ -20,13 +29,17 @@ import sys
 import textwrap
 from pathlib import Path
 
+from experiments.backends import BACKENDS, make_backend
 from experiments.config import ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
 from experiments.runtime import retain_freed_memory
-from motion.cli import Parser, UsageError, add_debug, run
+from motion.cli import Parser, UsageError, add_debug, one_line, run
 from motion.settings import describe
 
-__all__ = ["experiments_help", "main"]
+__all__ = ["EXIT_RUNS_FAILED", "experiments_help", "main"]
+
+#: exit status of a run command some of whose runs failed (bad input is 2)
+EXIT_RUNS_FAILED = 1
 
 
 def _registry():
@@ -73,6 +86,16 @@ def _seed(text: str) -> int:
     return value
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {value}")
+    return value
+
+
 def _parser() -> Parser:
     parser = Parser(prog="python -m experiments", description=__doc__, epilog=experiments_help())
     add_debug(parser)
@@ -80,13 +103,41 @@ def _parser() -> Parser:
     run_p = sub.add_parser(
         "run",
         help="run a YAML config (see experiments/README.md)",
-        description="Run a YAML config with key=value overrides (YAML values).",
+        description="Run a YAML config with key=value overrides (YAML values). A run whose "
+        "folder already holds a record of the same resolved config is not rerun (--force "
+        "reruns it); runs that fail are named on one error line and the status is 1.",
         epilog=experiments_help(),
     )
     add_debug(run_p, top=False)
     run_p.add_argument("config", type=Path, help="a config file, e.g. experiments/configs/...")
     run_p.add_argument(
         "overrides", nargs="*", default=[], help="key=value settings (fields of the schema)"
+    )
+    run_p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="sequential",
+        help="where the runs execute: one after another in this process (default), or one "
+        "Ray task per sweep entry (needs pip install .[distributed])",
+    )
+    run_p.add_argument(
+        "--address",
+        default=None,
+        metavar="ADDRESS",
+        help="with --backend ray: the cluster to join (auto, or ray://HOST:PORT); "
+        "omitted: start a local Ray on this machine for the command",
+    )
+    run_p.add_argument(
+        "--cpus-per-task",
+        type=_positive,
+        default=None,
+        metavar="N",
+        help="with --backend ray: CPUs each task asks for and torch threads it uses (default 1)",
+    )
+    run_p.add_argument(
+        "--force",
+        action="store_true",
+        help="rerun runs whose folder already holds a record of the same resolved config",
     )
     list_p = sub.add_parser("list", help="list the experiments and their fields")
     add_debug(list_p, top=False)
@@ -100,17 +151,36 @@ def _parser() -> Parser:
     return parser
 
 
-def _run(args: argparse.Namespace) -> int:
-    from experiments.runner import run_config
+def _print_metrics(metrics: dict) -> None:
+    width = max((len(k) for k in metrics), default=0)
+    for key, value in sorted(metrics.items()):
+        print(f"{key:<{width}}  {value:.4g}")
 
+
+def _run(args: argparse.Namespace) -> int:
+    from experiments.runner import SweepFailed, run_config
+
+    if args.backend != "ray":
+        for flag, value in (("--address", args.address), ("--cpus-per-task", args.cpus_per_task)):
+            if value is not None:
+                raise UsageError(f"{flag}: only with --backend ray; got --backend {args.backend}")
+    overrides = parse_overrides(args.overrides)
+    backend = make_backend(args.backend, args.address)  # says how to install Ray if missing
     try:
-        metrics = run_config(args.config, parse_overrides(args.overrides))
+        metrics = run_config(
+            args.config, overrides, backend, force=args.force, cpus_per_task=args.cpus_per_task or 1
+        )
     except ExperimentSkipped as why:
         print(f"skipped: {why}")
         return 0
-    width = max(len(k) for k in metrics)
-    for key, value in sorted(metrics.items()):
-        print(f"{key:<{width}}  {value:.4g}")
+    except SweepFailed as failed:
+        _print_metrics(failed.metrics)
+        if getattr(args, "debug", False):
+            for label, failure in failed.failures:
+                print(f"--- {label}:\n{failure.traceback or failure.summary}", file=sys.stderr)
+        print(f"error: {one_line(failed)}", file=sys.stderr)
+        return EXIT_RUNS_FAILED
+    _print_metrics(metrics)
     return 0
 
 
