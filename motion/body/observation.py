@@ -354,7 +354,9 @@ class PartSamples:
         depth: the part's depth at each point (metres).
         inside: the point lies in the image.
         rest_depth: depth of the rest of the body there (inf: uncovered).
-        rest_label: the part of the rest of the body in front there (-1: uncovered).
+        near_label: the nearest part of the whole current body there (-1: none); with
+            ``second_labels`` (the flattened second-nearest label map) it gives
+            :attr:`rest_label`, gathered only when a cue asks.
         flat: index of each point's pixel in the flattened ``(B, T, C, H, W)`` maps.
     """
 
@@ -363,10 +365,18 @@ class PartSamples:
     depth: Tensor
     inside: Tensor
     rest_depth: Tensor
-    rest_label: Tensor
+    near_label: Tensor
+    second_labels: Tensor
     flat: Tensor
     batch_maps: int  # B of the maps the index was made for (1: shared by the batch)
     image_base: Tensor  # index of each point's image's first pixel in the flattened maps
+    parts: Tensor  # (N,) part of each node
+
+    @property
+    def rest_label(self) -> Tensor:
+        """The part of the rest of the body in front at each point (-1: uncovered)."""
+        mine = self.near_label == _node_axis_view(self.parts, self.near_label.dim())
+        return torch.where(mine, self.second_labels[self.flat], self.near_label)
 
     @property
     def own(self) -> Tensor:
@@ -527,8 +537,9 @@ class Intensity(Cue):
         colour = colours[samples.parts.to(seen.device)]  # (N, 3)
         cost = (seen - colour[None, :, None, None, None, :]).square().sum(-1)
         if self.replaces_rest:
-            covered = inner.rest_label >= 0
-            rest = colours[inner.rest_label.clamp_min(0)]  # (B, N, C, K, S, 3)
+            label = inner.rest_label
+            covered = label >= 0
+            rest = colours[label.clamp_min(0)]  # (B, N, C, K, S, 3)
             cost = cost - covered * (seen - rest).square().sum(-1)
         return -self.weight / (2 * self.sigma**2) * (inner.weight * inner.own * cost).sum(-1)
 
@@ -732,7 +743,16 @@ class BodyObservation(UnaryFactor):
         rest_depth = torch.where(
             own_label, layers.second.reshape(-1)[flat], layers.near.reshape(-1)[flat]
         )
-        rest_label = torch.where(own_label, layers.second_label.reshape(-1)[flat], label)
         return PartSamples(
-            points, weight, depth, inside, rest_depth, rest_label, flat, b, base.expand_as(flat)
+            points,
+            weight,
+            depth,
+            inside,
+            rest_depth,
+            label,
+            layers.second_label.reshape(-1),
+            flat,
+            b,
+            base.expand_as(flat),
+            parts,
         )
