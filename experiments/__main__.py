@@ -76,24 +76,21 @@ def experiments_help(details: bool = False) -> str:
     return "\n".join(lines)
 
 
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0; got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0; got {value}")
-    return value
+def _int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``, else a message with what was given."""
 
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected an integer >= {minimum}; got {text!r}"
+            ) from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}; got {value}")
+        return value
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {value}")
-    return value
+    return parse
 
 
 def _parser() -> Parser:
@@ -129,7 +126,7 @@ def _parser() -> Parser:
     )
     run_p.add_argument(
         "--cpus-per-task",
-        type=_positive,
+        type=_int_at_least(1),
         default=None,
         metavar="N",
         help="with --backend ray: CPUs each task asks for and torch threads it uses (default 1)",
@@ -146,7 +143,7 @@ def _parser() -> Parser:
     )
     add_debug(demo, top=False)
     demo.add_argument("--bvh", type=Path, default=BUNDLED_BVH, help="reference BVH file")
-    demo.add_argument("--seed", type=_seed, default=0, help="seed (an integer >= 0)")
+    demo.add_argument("--seed", type=_int_at_least(0), default=0, help="seed (an integer >= 0)")
     demo.add_argument("--out-dir", type=Path, default=Path("runs/demo"), help="output folder")
     return parser
 

@@ -164,6 +164,11 @@ def _ring(cfg: NbpSingleImageConfig, dtype=torch.float32) -> CameraRig:
     )
 
 
+def _part_colours(parts: int) -> Tensor:
+    """``(P, 3)`` in [0, 1]: the parts' colours of the rendered images (motion.draw's)."""
+    return torch.from_numpy(PART_COLOURS[:parts].astype(np.float32) / 255)
+
+
 def _postures(cfg: NbpSingleImageConfig, g: torch.Generator):
     """The spec, truth and start part poses (T, P, 7), each frame centred at the origin."""
     bvh = read_bvh(cfg.bvh)
@@ -201,7 +206,7 @@ def _observe(
     """What cameras see of the true postures: silhouettes, part-coloured images, the
     distance to the images' Canny edges (motion.features, as on a video), and 2-D joints
     (every part end, with ``KEYPOINT_NOISE_PX`` of Gaussian noise: a detector's)."""
-    colours = torch.from_numpy(PART_COLOURS[: spec.num_parts].astype(np.float32) / 255)
+    colours = _part_colours(spec.num_parts)
     seg = spec.landmarks(truth)  # (T, P, 2, 3)
     parts = project_parts(rig, seg, spec.shapes.radii.float())  # (T, C, P, ...)
     sil = silhouette(parts, H, W).float()  # (T, C, H, W)
@@ -218,7 +223,7 @@ def _observe(
 
 
 def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
-    colours = torch.from_numpy(PART_COLOURS[: spec.num_parts].astype(np.float32) / 255)
+    colours = _part_colours(spec.num_parts)
     make = {
         "silhouette": lambda: Silhouette(1.0, 1.0, smooth=cfg.smooth),
         "edges": lambda: Edges(0.2, smooth=cfg.smooth),
@@ -241,8 +246,7 @@ def _anneal(cfg: NbpSingleImageConfig, end: float):
 def _errors(spec: BodySpec, rig: CameraRig, truth: torch.Tensor, poses: torch.Tensor):
     """E_2D (camera 0) and E_3D per frame: mean landmark distance / figure height."""
     est, ref = spec.landmarks(poses).flatten(-3, -2), spec.landmarks(truth).flatten(-3, -2)
-    height = ref[..., 1].amax(-1) - ref[..., 1].amin(-1)  # (T,) metres
-    e3 = (est - ref).norm(dim=-1).mean(-1) / height
+    e3 = _e3d(est, ref)
     uv, _ = rig.project(est)
     uv_ref, _ = rig.project(ref)
     h2 = uv_ref[:, 0, :, 1].amax(-1) - uv_ref[:, 0, :, 1].amin(-1)
@@ -256,8 +260,13 @@ def _e3d_depth_oracle(spec: BodySpec, rig: CameraRig, truth: Tensor, poses: Tens
     orthographic view cannot see is given."""
     ref = spec.landmarks(truth)
     est = resolve_depth_flips(spec.parents, spec.landmarks(poses), ref, rig.R[0, 2])
-    height = ref[..., 1].flatten(1).amax(-1) - ref[..., 1].flatten(1).amin(-1)
-    return ((est - ref).norm(dim=-1).flatten(1).mean(-1) / height).double()
+    return _e3d(est.flatten(-3, -2), ref.flatten(-3, -2)).double()
+
+
+def _e3d(est: Tensor, ref: Tensor) -> Tensor:
+    """Eq. 37 per frame: ``(T, L, 3)`` landmarks -> ``(T,)`` mean distance / height."""
+    height = ref[..., 1].amax(-1) - ref[..., 1].amin(-1)  # (T,) metres
+    return (est - ref).norm(dim=-1).mean(-1) / height
 
 
 def run(cfg: NbpSingleImageConfig):
@@ -296,7 +305,7 @@ def run(cfg: NbpSingleImageConfig):
         kernel_schedule=_anneal(cfg, cfg.kernel_end),
         proposal_centres=min(30, k),
     )
-    colours = torch.from_numpy(PART_COLOURS[:p].astype(np.float32) / 255)
+    colours = _part_colours(p)
     colours = colours if "intensity" in cfg.cues else None
     searches = result.best.reshape(s, t, p, 7)
     estimate, _ = best_per_frame(

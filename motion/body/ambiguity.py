@@ -19,6 +19,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from motion.body.spec import topological_order
+
 __all__ = ["resolve_depth_flips"]
 
 
@@ -55,7 +57,7 @@ def resolve_depth_flips(
     true_depth = truth @ axis
     flat = landmarks - depth[..., None] * axis  # the image-plane part, kept
     new_depth = depth.clone()
-    order = _root_first(parents)
+    order = topological_order(parents).tolist()
     # decide the flips from the truth's root depth (the depth shift is settled last)
     new_depth[:, order[0], 0] = true_depth[:, order[0], 0]
     for j in order:
@@ -75,13 +77,3 @@ def resolve_depth_flips(
     # nor does an orthographic view see where the body is along its axis
     new_depth = new_depth + (true_depth - new_depth).flatten(1).mean(1)[:, None, None]
     return flat + new_depth[..., None] * axis
-
-
-def _root_first(parents: Tensor) -> list[int]:
-    """Parts ordered so that every parent comes before its children."""
-    order, frontier = [], (parents < 0).nonzero().flatten().tolist()
-    while frontier:
-        j = frontier.pop(0)
-        order.append(j)
-        frontier += (parents == j).nonzero().flatten().tolist()
-    return order

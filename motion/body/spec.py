@@ -35,7 +35,7 @@ from motion.bodyparts import BodyModel, joint_of_point, read_parts
 from motion.kinematics import FKResult, Skeleton
 from motion.limits import load_limits
 
-__all__ = ["BodySpec", "BodySpecError", "part_tree"]
+__all__ = ["BodySpec", "BodySpecError", "part_tree", "topological_order"]
 
 
 class BodySpecError(ValueError):
@@ -114,13 +114,7 @@ class BodySpec:
 
     def topological_order(self) -> Tensor:
         """Parts ordered root first, every parent before its children."""
-        depth = torch.zeros(self.num_parts, dtype=torch.long)
-        for p in range(self.num_parts):
-            q = int(self.parents[p])
-            while q >= 0:
-                depth[p] += 1
-                q = int(self.parents[q])
-        return torch.sort(depth, stable=True).indices
+        return topological_order(self.parents)
 
     @classmethod
     def from_motion(
@@ -204,6 +198,18 @@ def _joint_limits(parts_path: Path, limits) -> dict | None:
     if limits is None or isinstance(limits, dict):
         return limits
     return load_limits(limits)
+
+
+def topological_order(parents: Tensor) -> Tensor:
+    """``(P,)`` long: parts ordered by their depth in the tree ``parents`` (-1 for the
+    root), root first, every parent before its children."""
+    depth = torch.zeros(len(parents), dtype=torch.long)
+    for p in range(len(parents)):
+        q = int(parents[p])
+        while q >= 0:
+            depth[p] += 1
+            q = int(parents[q])
+    return torch.sort(depth, stable=True).indices
 
 
 def _chain(skeleton: Skeleton, model: BodyModel, part: dict) -> list[int]:

@@ -15,6 +15,7 @@ from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 
 F64 = torch.float64
 WALK = Path(__file__).resolve().parents[3] / "motion" / "data" / "cmu_02_01_walk.bvh"
+ROBOT_ARM = WALK.parent / "examples" / "robot_arm"  # .bvh and its one spec file, .yaml
 
 
 def walk_segments(frames) -> tuple[torch.Tensor, BodyModel]:
@@ -51,3 +52,18 @@ def walk_body():
     seg, model = walk_segments([30, 60, 90])
     shapes = PartShapes.from_segments(seg[0], model.radii)
     return seg, poses_from_segments(seg), shapes, model, side_camera()
+
+
+@pytest.fixture(scope="module")
+def arm():
+    """The bundled robot arm (``motion/data/examples``): bvh, skeleton, model, motion
+    ``(T, channels)`` float64, and its BodySpec from the spec file."""
+    from motion.body.spec import BodySpec
+
+    bvh = read_bvh(ROBOT_ARM.with_suffix(".bvh"))
+    skeleton = Skeleton.from_bvh(bvh, metres_per_unit=1.0)
+    model = BodyModel.from_skeleton(skeleton, ROBOT_ARM.with_suffix(".yaml"))
+    motion = torch.from_numpy(bvh.motion_frames()).to(F64)
+    rot, root = local_rotations(skeleton, motion, bvh.channels)
+    spec = BodySpec.from_motion(skeleton, model, forward_kinematics(skeleton, rot, root))
+    return bvh, skeleton, model, motion, spec

@@ -22,9 +22,9 @@ from motion.bvh import read_bvh
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.limits import limit_violation, limits_tensor, load_limits
 from pgm import SE3, Geometric, LimitedConnection, MaxSemiring, RigidConnection, particle_bp
-from tests.motion.body.conftest import F64, WALK
+from tests.motion.body.conftest import F64, ROBOT_ARM, WALK
 
-ARM = WALK.parent / "examples" / "robot_arm"
+ARM = ROBOT_ARM
 
 
 @pytest.fixture(scope="module")
@@ -118,17 +118,12 @@ def test_composite_boxes_contain_every_posture_the_joints_allow(walk):
     assert excess.max() < 1e-6, excess.amax((0, 2))
 
 
-def test_a_joint_on_the_parents_side_gives_the_inverse_box():
+def test_a_joint_on_the_parents_side_gives_the_inverse_box(arm):
     """The robot arm with the forearm's frame moved to the right finger: the edge
     forearm -> finger_l then runs up through FingerR and down through FingerL (held fixed),
     so its relative rotation is FingerR's local rotation inverted -- reversed order,
     negated bounds -- and its excess is FingerR's own violation."""
-    bvh = read_bvh(ARM.with_suffix(".bvh"))
-    skeleton = Skeleton.from_bvh(bvh, metres_per_unit=1.0)
-    model = BodyModel.from_skeleton(skeleton, ARM.with_suffix(".yaml"))
-    motion = torch.from_numpy(bvh.motion_frames()).to(F64)
-    rot, root = local_rotations(skeleton, motion, bvh.channels)
-    spec = BodySpec.from_motion(skeleton, model, forward_kinematics(skeleton, rot, root))
+    bvh, skeleton, model, motion, spec = arm
     frames = spec.frame_joints.clone()
     frames[spec.part_names.index("forearm")] = skeleton.index("FingerR")
     moved = dataclasses.replace(spec, frame_joints=frames)

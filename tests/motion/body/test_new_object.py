@@ -16,29 +16,17 @@ import torch
 
 from motion.body.graph import Connections, body_graph
 from motion.body.observation import BodyObservation, Edges, Observation, PartShapes, Silhouette
-from motion.body.spec import BodySpec, part_tree
+from motion.body.spec import part_tree
 from motion.bodyparts import DEFAULT_PARTS, BodyModel, BodyPartMappingError, read_parts
-from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.features import distance_to_edges, edges
-from motion.kinematics import Skeleton, forward_kinematics, local_rotations
+from motion.kinematics import forward_kinematics, local_rotations
 from motion.render import project_parts, silhouette
 from pgm import SE3, Geometric, MaxSemiring, particle_bp
-from tests.motion.body.conftest import F64, WALK
+from tests.motion.body.conftest import F64, ROBOT_ARM
 
-ARM = WALK.parent / "examples" / "robot_arm"
+ARM = ROBOT_ARM
 H, W, PX_PER_M = 120, 160, 80.0  # the arm's 1.2 m reach ~100 px; a finger 10 x 4 px
-
-
-@pytest.fixture(scope="module")
-def arm():
-    bvh = read_bvh(ARM.with_suffix(".bvh"))
-    skeleton = Skeleton.from_bvh(bvh, metres_per_unit=1.0)
-    model = BodyModel.from_skeleton(skeleton, ARM.with_suffix(".yaml"))
-    motion = torch.from_numpy(bvh.motion_frames()).to(F64)
-    rot, root = local_rotations(skeleton, motion, bvh.channels)
-    spec = BodySpec.from_motion(skeleton, model, forward_kinematics(skeleton, rot, root))
-    return bvh, skeleton, model, motion, spec
 
 
 def _poses(arm, rows):
