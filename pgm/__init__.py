@@ -12,6 +12,7 @@ from pgm.continuous import (
     GaussianUnary,
     LinearGaussian,
     LookupGaussian,
+    LookupPose,
     RigidConnection,
     UnaryFactor,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "LinearGaussian",
     "LogSemiring",
     "LookupGaussian",
+    "LookupPose",
     "MaxSemiring",
     "MissingCapabilityError",
     "MonotoneFactor",

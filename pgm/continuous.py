@@ -44,6 +44,7 @@ __all__ = [
     "GaussianUnary",
     "LinearGaussian",
     "LookupGaussian",
+    "LookupPose",
     "RigidConnection",
     "UnaryFactor",
 ]
@@ -363,6 +364,18 @@ class GaussianUnary(UnaryFactor):
         return -0.5 * z.square().sum(-1)
 
 
+def _per_state(table: Tensor, state: Tensor, edges: EdgeIndex) -> Tensor:
+    """Rows of ``table`` ``(E or 1, S, D)`` for the states ``(B, E', M)`` (values of a
+    discrete end) of ``edges`` -> ``(B, E', M, D)``; padding states beyond ``S`` are clamped
+    to ``S - 1`` (they carry no mass)."""
+    if table.shape[0] > 1:
+        table = table[edges]
+    s = state.long().clamp(0, table.shape[1] - 1)
+    e = torch.arange(table.shape[0], device=state.device)[None, :, None]
+    e = e if table.shape[0] > 1 else torch.zeros_like(e)
+    return table[e.expand_as(s), s]
+
+
 class LookupGaussian(ContinuousPairwise):
     """A discrete node choosing the mean of a continuous one:
     ``psi(c, x) = N(x[:dim]; means[c], (anneal * std)^2 I)``.
@@ -399,13 +412,7 @@ class LookupGaussian(ContinuousPairwise):
 
     def _mean(self, state: Tensor, edges: EdgeIndex) -> Tensor:
         """Means of states ``(B, E, M)`` (values of the discrete end) -> (B, E, M, dim)."""
-        means = self.means.to(state.device)
-        if means.shape[0] > 1:
-            means = means[edges]
-        s = state.long().clamp(0, means.shape[1] - 1)  # padding states are clamped (no mass)
-        e = torch.arange(means.shape[0], device=state.device)[None, :, None]
-        e = e if means.shape[0] > 1 else torch.zeros_like(e)
-        return means[e.expand_as(s), s]
+        return _per_state(self.means.to(state.device), state, edges)
 
     def _log_gauss(self, x: Tensor, mean: Tensor) -> Tensor:
         """x (B, E, K, D), mean (B, E, M, dim) -> (B, E, K, M)."""
@@ -433,3 +440,122 @@ class LookupGaussian(ContinuousPairwise):
     def log_target_density(self, x_target, x_source, edges, forward):
         self._check_forward(forward)
         return self._log_gauss(x_target, self._mean(x_source[..., 0], edges))
+
+
+class LookupPose(ContinuousPairwise):
+    """A discrete node choosing the target pose of an SE(3) node:
+    ``psi(c, x) = N(p(x); p(t_c), (anneal * pos_std)^2 I_3) * k(q(x); q(t_c), anneal * rot_std)``.
+
+    The SE(3) analogue of :class:`LookupGaussian`: edges run from the discrete node (a,
+    states ``0..S-1``) to the SE(3) node (b, values ``(x, y, z, qw, qx, qy, qz)``), and
+    state ``c`` pulls the pose toward the target ``t_c`` -- e.g. part p of video frame t'
+    toward the reference posture's part p at reference frame ``offsets[t'] + c`` (per-edge
+    targets). ``k`` is the rotation kernel of the family ``rotation`` (see
+    :func:`pgm.kernels.rotation_noise`: an isotropic Bingham density by default, or the
+    Gaussian of rotation vectors), normalised on SO(3) in the measure of
+    :class:`pgm.spaces.SE3`'s kernels, so ``psi(c, .)`` is a normalised density of the pose:
+    what :meth:`sample_target` draws and :meth:`log_target_density` evaluates (only the
+    continuous end is ever sampled: a discrete node's support is fixed). Padding states
+    beyond ``S`` (a discrete node padded to K particles) are clamped to ``S - 1``; they carry
+    no mass. The schedule multiplies both spreads.
+
+    Either spread may be ``None``: that half of the pose is unconstrained (``pos_std=None``:
+    rotation only; ``rot_std=None``: position only). ``psi(c, .)`` is then improper in that
+    half and cannot be sampled, so such a factor drops :attr:`Capability.SAMPLABLE` from its
+    capabilities when it is built (as :class:`RigidConnection` does without ``rot_std``) and
+    its sampler and density raise :class:`~pgm.factors.MissingCapabilityError`; its table is
+    still exact, so it serves in a ``ParticleGraph(..., proposal="own")`` (one built for the
+    mixture proposal refuses it with a :class:`~pgm.graph.GraphError`).
+
+    Args:
+        targets: ``(S, 7)`` one pose per state, or ``(E, S, 7)`` per edge (unit quaternions).
+        pos_std: metres, or ``None``. rot_std: radians, or ``None`` (not both ``None``).
+        schedule: multiplier of both spreads per iteration (annealing).
+        rotation: ``"bingham"`` or ``"gaussian"``, the rotation kernel's family.
+    """
+
+    capabilities = _SAMPLABLE
+
+    def __init__(
+        self,
+        targets: Tensor,
+        pos_std: float | None,
+        rot_std: float | None,
+        schedule: Schedule | None = None,
+        rotation: str = "bingham",
+    ):
+        super().__init__(schedule)
+        if not isinstance(targets, Tensor) or targets.dim() not in (2, 3) or targets.shape[-1] != 7:
+            shape = tuple(targets.shape) if isinstance(targets, Tensor) else type(targets).__name__
+            raise ValueError(f"targets must have shape (S, 7) or (E, S, 7); got {shape}")
+        if not torch.isfinite(targets).all():
+            raise ValueError("targets must be finite")
+        norm = targets[..., 3:].norm(dim=-1)
+        if ((norm - 1).abs() > 1e-3).any():
+            raise ValueError(
+                "targets' quaternions must have unit norm (max |norm - 1| = "
+                f"{float((norm - 1).abs().max()):.3g})"
+            )
+        if rotation not in ROTATION_KERNELS:
+            raise ValueError(f"rotation must be one of {ROTATION_KERNELS}; got {rotation!r}")
+        if pos_std is None and rot_std is None:
+            raise ValueError(
+                "pos_std and rot_std cannot both be None: nothing would be constrained"
+            )
+        for name, std in (("pos_std", pos_std), ("rot_std", rot_std)):
+            if std is not None and not (math.isfinite(std) and std > 0):
+                raise ValueError(f"{name} must be finite and > 0, or None; got {std}")
+        targets = torch.cat([targets[..., :3], qnormalize(targets[..., 3:])], -1)
+        self.targets = targets if targets.dim() == 3 else targets.unsqueeze(0)  # (E or 1, S, 7)
+        if targets.dim() == 3:
+            self.num_edges = targets.shape[0]
+        self.pos_std = None if pos_std is None else float(pos_std)
+        self.rot_std = None if rot_std is None else float(rot_std)
+        self.rotation = rotation
+        if pos_std is None or rot_std is None:  # an improper conditional: nothing to sample
+            self.capabilities = type(self).capabilities - {Capability.SAMPLABLE}
+
+    def _spreads(self) -> tuple[float | None, float | None]:
+        m = self.anneal
+        s_p = None if self.pos_std is None else self.pos_std * m
+        s_r = None if self.rot_std is None else self.rot_std * m
+        return s_p, s_r
+
+    def _target(self, state: Tensor, edges: EdgeIndex, like: Tensor) -> Tensor:
+        """Targets of states ``(B, E, M)`` (values of the discrete end) -> (B, E, M, 7)."""
+        return _per_state(self.targets.to(device=like.device, dtype=like.dtype), state, edges)
+
+    def _table(self, x: Tensor, target: Tensor) -> Tensor:
+        """``log psi`` of poses x (B, E, K, >= 7) against targets (B, E, M, 7) -> (B, E, K, M)."""
+        s_p, s_r = self._spreads()
+        qx, qt = x[..., 3:7], target[..., 3:7]
+        if s_p is None:  # rotation only
+            return rotation_log_kernel_from_dot(qx @ qt.transpose(-1, -2), s_r, self.rotation)
+        return se3_kernel_table(x[..., :3], qx, target[..., :3], qt, s_p, s_r, self.rotation)
+
+    def log_potential(self, edges, xa, xb, num_states):
+        return self._table(xb, self._target(xa[..., 0], edges, xb)).transpose(-1, -2)  # [c, x]
+
+    def _check_sampling(self, forward: bool) -> None:
+        if Capability.SAMPLABLE not in self.capabilities:
+            raise MissingCapabilityError(self, Capability.SAMPLABLE)
+        if not forward:
+            raise ValueError(
+                "LookupPose samples only its continuous end (b): its discrete end is never "
+                "resampled"
+            )
+
+    def sample_target(self, x_source, edges, forward, generator):
+        self._check_sampling(forward)
+        target = self._target(x_source[..., 0], edges, x_source)
+        s_p, s_r = self._spreads()
+        lead = target.shape[:-1]
+        ep = torch.randn((*lead, 3), generator=generator, dtype=target.dtype, device=target.device)
+        noise = rotation_noise(lead, s_r, self.rotation, generator, target.dtype, target.device)
+        q = qnormalize(qmul(noise, target[..., 3:7]))
+        return torch.cat([target[..., :3] + s_p * ep, q], -1)
+
+    def log_target_density(self, x_target, x_source, edges, forward):
+        # psi(c, .) is already normalised: a Gaussian in position, the SO(3) kernel in rotation.
+        self._check_sampling(forward)
+        return self._table(x_target, self._target(x_source[..., 0], edges, x_target))

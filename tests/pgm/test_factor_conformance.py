@@ -48,6 +48,7 @@ from pgm import (
     LinearGaussian,
     LogSemiring,
     LookupGaussian,
+    LookupPose,
     MaxSemiring,
     MissingCapabilityError,
     MonotoneFactor,
@@ -82,7 +83,8 @@ class Case:
         make: builds the factor (float64 parameters) with its per-edge parameters repeated
             ``repeat`` times (the reference a tiled factor must equal).
         kind: what its ends hold: ``"discrete"`` (state indices), ``"euclid1"``,
-            ``"euclid2"``, ``"se3"`` (particles), ``"lookup"`` (a discrete a, an R^2 b).
+            ``"euclid2"``, ``"se3"`` (particles), ``"lookup"`` (a discrete a, an R^2 b),
+            ``"lookup-se3"`` (a discrete a, an SE3 b).
         states: K of the checks.
         edges: E of the checks (the factor's own count when it has per-edge parameters).
     """
@@ -96,6 +98,11 @@ class Case:
 
 def _rand(*shape, seed=0, scale=1.0):
     return scale * torch.randn(*shape, generator=_gen(seed), dtype=F64)
+
+
+def _se3(shape, seed):
+    centre = torch.tensor([0.1, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=F64)
+    return SE3().perturb(centre.expand(*shape, 7), (0.06, 0.4), _gen(seed))
 
 
 def _table_with_holes(e, k, seed):
@@ -248,6 +255,27 @@ CASES = [
         "lookup",
         12,
     ),
+    Case("lookup-pose", lambda r: LookupPose(_se3((6,), 30), 0.05, 0.2), "lookup-se3", 12),
+    Case(
+        "lookup-pose-gaussian-per-edge",
+        lambda r: LookupPose(
+            _se3((3, 6), 31).repeat(r, 1, 1), 0.04, 0.25, Geometric(1, 0.5, 3), "gaussian"
+        ),
+        "lookup-se3",
+        12,
+    ),
+    Case(
+        "lookup-pose-rotation-only",
+        lambda r: LookupPose(_se3((3, 6), 32).repeat(r, 1, 1), None, 0.3),
+        "lookup-se3",
+        12,
+    ),
+    Case(
+        "lookup-pose-position-only",
+        lambda r: LookupPose(_se3((6,), 33), 0.05, None, rotation="gaussian"),
+        "lookup-se3",
+        12,
+    ),
 ]
 
 
@@ -304,11 +332,6 @@ def _count(edges, num_edges):
     return num_edges if isinstance(edges, slice) else len(edges)
 
 
-def _se3(shape, seed):
-    centre = torch.tensor([0.1, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=F64)
-    return SE3().perturb(centre.expand(*shape, 7), (0.06, 0.4), _gen(seed))
-
-
 def _supports(case: Case, e: int, seed: int = 0):
     """Values of both ends, ``(B, E, K, D)`` each, or ``None`` for discrete supports."""
     k = case.states
@@ -317,6 +340,9 @@ def _supports(case: Case, e: int, seed: int = 0):
     if case.kind == "lookup":
         a = torch.randint(0, 6, (B, e, k, 1), generator=_gen(seed)).to(F64)
         return a, _rand(B, e, k, 2, seed=seed + 1)
+    if case.kind == "lookup-se3":
+        a = torch.randint(0, 6, (B, e, k, 1), generator=_gen(seed)).to(F64)
+        return a, _se3((B, e, k), seed + 1)
     if case.kind == "se3":
         return _se3((B, e, k), seed), _se3((B, e, k), seed + 1)
     d = int(case.kind[-1])
@@ -407,7 +433,7 @@ def test_backtrack_is_the_argmax_of_the_table(case, how, forward):
 def _samplable_directions(case: Case):
     if case.kind == "discrete":
         return []
-    return [True] if case.kind == "lookup" else [True, False]
+    return [True] if case.kind.startswith("lookup") else [True, False]
 
 
 SAMPLERS = [
@@ -427,7 +453,7 @@ def _sources(case: Case, forward: bool, e: int, seed: int):
         src[..., 1, 3:] = pgm.rotations.qmul(
             qexp(torch.tensor([0.05, -0.03, 0.0], dtype=F64)), src[..., 0, 3:]
         )
-    elif case.kind == "lookup":
+    elif case.kind.startswith("lookup"):
         src[..., 1, :] = (src[..., 0, :] + 1) % 6
     else:
         src[..., 1, :] = src[..., 0, :] + 0.1
@@ -439,11 +465,12 @@ def _log_reference(case: Case, draws: torch.Tensor):
     a conditional density against: it must integrate to 1 and give the draws' moments.
     Shapes: draws (1, E, n, D) -> samples (1, E, n, D), their log density (1, E, n)."""
     g = _gen(21)
-    pos = draws[..., :3] if case.kind == "se3" else draws
+    se3 = case.kind in ("se3", "lookup-se3")
+    pos = draws[..., :3] if se3 else draws
     mean, std = pos.mean(-2, keepdim=True), 2 * pos.std(-2, keepdim=True)
     y = mean + std * torch.randn(pos.shape, generator=g, dtype=F64)
     log_r = torch.distributions.Normal(mean, std).log_prob(y).sum(-1)
-    if case.kind != "se3":
+    if not se3:
         return y, log_r
     # rotations: the rotation-vector Gaussian around the draws' mean rotation, twice as
     # wide as their spread (its density is pgm.kernels.so3_log_kernel)
@@ -479,7 +506,7 @@ def test_samplers_draw_from_their_normalised_densities(case, how, forward):
     )
     dens = factor.log_target_density(draws, src, slice(None), forward)  # (1, E, n, 2)
     assert dens.shape == (1, e, n, 2)
-    if case.kind != "lookup":  # nearby states of a lookup table have unrelated means
+    if not case.kind.startswith("lookup"):  # nearby states of a lookup table have unrelated means
         ratio = (dens[..., 1] - dens[..., 0]).exp().mean(-1)
         torch.testing.assert_close(ratio, torch.ones_like(ratio), atol=0.05, rtol=0)
     y, log_r = _log_reference(case, draws)
@@ -487,7 +514,7 @@ def test_samplers_draw_from_their_normalised_densities(case, how, forward):
     z = log_iw.exp().mean(-1)
     torch.testing.assert_close(z, torch.ones_like(z), atol=0.05, rtol=0)
     w = torch.softmax(log_iw, -1).unsqueeze(-1)
-    d = 3 if case.kind == "se3" else draws.shape[-1]
+    d = 3 if case.kind in ("se3", "lookup-se3") else draws.shape[-1]
     weighted = (w * y[..., :d]).sum(-2)
     drawn = draws[..., :d].mean(-2)
     tol = 0.1 * draws[..., :d].std(-2)
