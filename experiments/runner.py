@@ -40,6 +40,7 @@ from experiments import (
     nbp_noise_sweep,
     nbp_single_image,
     pose2sim_real,
+    register_synthetic,
     stick_pose,
     stick_time,
 )
@@ -105,6 +106,12 @@ EXPERIMENTS = {
         nbp_single_image.run,
         nbp_single_image.plot,
         nbp_single_image.TIMINGS,
+    ),
+    "register_synthetic": Experiment(
+        register_synthetic.RegisterSyntheticConfig,
+        register_synthetic.run,
+        register_synthetic.plot,
+        register_synthetic.TIMINGS,
     ),
 }
 

@@ -16,14 +16,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from kornia.geometry.conversions import quaternion_to_rotation_matrix
+from kornia.geometry.conversions import (
+    quaternion_to_rotation_matrix,
+    rotation_matrix_to_quaternion,
+)
 from torch import Tensor
 
 from motion.body.spec import BodySpec
 from motion.bodyparts import BodyModel
 from motion.kinematics import FKResult, Skeleton, forward_kinematics
 
-__all__ = ["Posture", "fit_posture"]
+__all__ = ["Posture", "fit_part_rotations", "fit_posture", "rigid_fit"]
 
 
 @dataclass
@@ -81,3 +84,91 @@ def fit_posture(
     root_part = int((spec.parents < 0).nonzero()[0])
     root = poses[..., root_part, :3].to(dtype) - landmarks[..., spec.from_roles[root_part], :]
     return Posture(local, root, forward_kinematics(skeleton, local, root))
+
+
+def fit_part_rotations(
+    spec: BodySpec,
+    poses: Tensor,
+    reference: Tensor,
+    prior_weight: float = 1e-4,
+    root_rotation: Tensor | None = None,
+) -> Tensor:
+    """Each part's rotation refitted to what images show of it, the rest from a reference.
+
+    A capsule looks the same however it is turned about its own axis, so particle BP leaves
+    a limb's twist to chance. Here each part's rotation is the least-squares rotation
+    (Wahba's problem, solved by SVD) taking its vectors in its own frame -- the capsule axis
+    and the joints of its children (:attr:`BodySpec.offsets`) -- onto where the estimates
+    put them (its far landmark, its children's near landmarks), plus a weak pull
+    (``prior_weight``, m^2: a vector of 1 cm; a limb's vectors weigh ~0.1 m^2, so the pull
+    bends a real swing by ~0.1 %) toward the rotation the reference's joint angle would
+    give under the already fitted parent. Where the vectors pin the rotation (a pelvis, from its
+    hip joints) the pull is negligible; where they leave one axis free (a limb's twist) the
+    reference decides it: the smallest articulation that explains the images. Parents are
+    fitted before children, one depth level at a time.
+
+    Shapes: ``poses`` ``(..., P, 7)`` estimates; ``reference`` ``(..., P, 7)`` part poses
+    of the reference posture (only their relative rotations are used). Returns ``(..., P,
+    7)``: positions unchanged, frames refitted. ``root_rotation`` ``(..., 3, 3)``: the root
+    part's rotation, given (e.g. the whole body's rigid fit) instead of fitted.
+    """
+    if poses.shape[-2:] != (spec.num_parts, 7) or reference.shape[-2:] != poses.shape[-2:]:
+        raise ValueError(
+            f"poses and reference must have shape (..., {spec.num_parts}, 7); got "
+            f"{tuple(poses.shape)} and {tuple(reference.shape)}"
+        )
+    dtype = poses.dtype
+    est_rot = quaternion_to_rotation_matrix(poses[..., 3:7].contiguous())
+    ref_rot = quaternion_to_rotation_matrix(reference[..., 3:7].to(dtype).contiguous())
+    ends = spec.landmarks(poses)  # (..., P, 2, 3)
+    axis = spec.shapes.axis.to(dtype)
+    offsets = spec.offsets.to(dtype)
+    fitted = est_rot.clone()
+    eye = torch.eye(3, dtype=dtype, device=poses.device)
+    depth = torch.zeros(spec.num_parts, dtype=torch.long)
+    for p in spec.topological_order().tolist()[1:]:
+        depth[p] = depth[int(spec.parents[p])] + 1
+    for level in range(int(depth.max()) + 1):
+        for p in (depth == level).nonzero().flatten().tolist():  # a level's few parts
+            parent = int(spec.parents[p])
+            if parent < 0 and root_rotation is not None:
+                fitted[..., p, :, :] = root_rotation.to(dtype)
+                continue
+            if parent < 0:
+                prior = est_rot[..., p, :, :]
+            else:
+                relative = ref_rot[..., parent, :, :].transpose(-1, -2) @ ref_rot[..., p, :, :]
+                prior = fitted[..., parent, :, :] @ relative
+            seen = ends[..., p, 1, :] - ends[..., p, 0, :]
+            b = seen[..., :, None] * axis[p][None, :] + prior_weight * prior
+            for child in (spec.parents == p).nonzero().flatten().tolist():
+                seen = poses[..., child, :3] - poses[..., p, :3]
+                b = b + seen[..., :, None] * offsets[child][None, :]
+            fitted[..., p, :, :] = _nearest_rotation(b, eye)
+    quat = rotation_matrix_to_quaternion(fitted.contiguous())
+    return torch.cat([poses[..., :3], quat.to(dtype)], -1)
+
+
+def _nearest_rotation(b: Tensor, eye: Tensor) -> Tensor:
+    """``argmax_R trace(R^T B)`` over rotations (Wahba / Kabsch): ``(..., 3, 3)``."""
+    u, _, vh = torch.linalg.svd(b)
+    d = torch.det(u @ vh)
+    fix = eye.expand_as(b).clone()
+    fix[..., 2, 2] = d
+    return u @ fix @ vh
+
+
+def rigid_fit(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """The rotation and translation taking points ``source`` onto ``target`` in least
+    squares (Kabsch): ``(..., N, 3)`` each -> ``R (..., 3, 3)``, ``t (..., 3)`` with
+    ``target ~ R source + t``."""
+    if source.shape != target.shape or source.shape[-1] != 3:
+        raise ValueError(
+            f"source and target must have the same shape (..., N, 3); got "
+            f"{tuple(source.shape)} and {tuple(target.shape)}"
+        )
+    mu_s, mu_t = source.mean(-2), target.mean(-2)
+    b = (target - mu_t[..., None, :]).transpose(-1, -2) @ (source - mu_s[..., None, :])
+    eye = torch.eye(3, dtype=source.dtype, device=source.device)
+    r = _nearest_rotation(b, eye)
+    return r, mu_t - (r @ mu_s[..., :, None]).squeeze(-1)

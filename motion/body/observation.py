@@ -686,20 +686,21 @@ class BodyObservation(UnaryFactor):
     def samples(self, x: Tensor, nodes: Tensor, estimates: Tensor) -> Samples:
         """The shared rendering products of one call (see :class:`Samples`).
 
-        Shapes: x ``(B, N, K, 7)``, nodes ``(N,)``, estimates ``(B, V, 7)`` with
-        ``V = T * P``.
+        Shapes: x ``(B, N, K, 7)``, nodes ``(N,)``, estimates ``(B, V, D)`` whose first
+        ``T * P`` nodes are the body's (nodes of other kinds, e.g. a correspondence chain
+        coupled to the body, may follow them).
         """
         b, n, k, _ = x.shape
         p = self.num_parts
         t_obs = self.obs.silhouette.shape[1]
-        if estimates.shape[1] != t_obs * p:
+        if estimates.shape[1] < t_obs * p or estimates.shape[-1] < 7:
             raise ValueError(
                 f"the graph has {estimates.shape[1]} nodes; the observation has {t_obs} frames "
-                f"of {p} parts ({t_obs * p} nodes)"
+                f"of {p} parts ({t_obs * p} SE(3) nodes first)"
             )
         nodes = nodes.to(x.device)
         frames, parts = nodes // p, nodes % p
-        rest = estimates[..., :7].reshape(b, t_obs, p, 7)
+        rest = estimates[:, : t_obs * p, :7].reshape(b, t_obs, p, 7)
         rest_segments = self.shapes.segments(rest, torch.arange(p))  # (B, T, P, 2, 3)
         h, w = self.obs.size
         if self.occlusion:

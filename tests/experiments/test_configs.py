@@ -40,6 +40,14 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
     ],
     "nbp_noise_sweep": ["e2d_mean_at_0", "e3d_mean_at_0", "e2d_mean_at_30", "e3d_mean_at_30"],
     "nbp_ablation": ["e2d_mean_full", "e3d_mean_full", "e2d_mean_bpmc", "e3d_mean_bpmc"],
+    "register_synthetic": [
+        "c_err_mean",
+        "c_err_mean_stage1",
+        "t_rot_err_deg_mean",
+        "t_pos_err_mean",
+        "a_err_deg_mean",
+        "e3d_mean",
+    ],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
@@ -48,6 +56,7 @@ TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "nbp_single_image": ["sec_per_frame"],
     "nbp_noise_sweep": ["sec_per_frame"],
     "nbp_ablation": ["sec_per_frame_full"],
+    "register_synthetic": ["sec_per_video_frame"],
 }
 
 

@@ -67,3 +67,19 @@ def arm():
     rot, root = local_rotations(skeleton, motion, bvh.channels)
     spec = BodySpec.from_motion(skeleton, model, forward_kinematics(skeleton, rot, root))
     return bvh, skeleton, model, motion, spec
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """The whole walk: skeleton, body model, forward kinematics ``(T, J, ...)`` and its
+    BodySpec."""
+    from motion.body.spec import BodySpec
+
+    bvh = read_bvh(WALK)
+    skeleton = Skeleton.from_bvh(bvh)
+    model = BodyModel.from_skeleton(skeleton)
+    rot, root = local_rotations(
+        skeleton, torch.from_numpy(bvh.motion_frames()).to(F64), bvh.channels
+    )
+    fk = forward_kinematics(skeleton, rot, root)
+    return skeleton, model, fk, BodySpec.from_motion(skeleton, model, fk)

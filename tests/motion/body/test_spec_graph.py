@@ -6,25 +6,12 @@ import pytest
 import torch
 
 from motion.body.graph import Connections, PosturePrior, Temporal, body_graph, relative_rotations
-from motion.body.spec import BodySpec, BodySpecError, part_tree
-from motion.bodyparts import BodyModel
+from motion.body.spec import BodySpecError, part_tree
 from motion.bvh import read_bvh
-from motion.kinematics import Skeleton, forward_kinematics, local_rotations
+from motion.kinematics import local_rotations
 from pgm import SE3, TiledFactor, particle_bp
 from pgm.rotations import qrotate
 from tests.motion.body.conftest import F64, WALK
-
-
-@pytest.fixture(scope="module")
-def walk():
-    bvh = read_bvh(WALK)
-    skeleton = Skeleton.from_bvh(bvh)
-    model = BodyModel.from_skeleton(skeleton)
-    rot, root = local_rotations(
-        skeleton, torch.from_numpy(bvh.motion_frames()).to(F64), bvh.channels
-    )
-    fk = forward_kinematics(skeleton, rot, root)
-    return skeleton, model, fk, BodySpec.from_motion(skeleton, model, fk)
 
 
 def test_part_poses_reproduce_the_body_model_within_its_rigidity(walk):

@@ -1,0 +1,265 @@
+"""Registration of a reference BVH against a synthetic student video (issue: registration
+engine; the proposal's Section 6, variation 3).
+
+The student is rendered by :mod:`motion.synth` from either the reference itself --
+time-warped (C known), re-articulated on a few joints (A known), turned and moved (T known)
+-- or another performer's BVH of the same action (``student=``): then the true C is the
+monotone alignment of the two true 3-D motions, root-normalised (each frame's joints in its
+root's frame; :func:`true_correspondence`), and the true A the student's local rotations
+relative to the reference's at that C. :func:`motion.registration.register` recovers C, T
+and A from the silhouettes, edges and colours (and 2-D joints with ``keypoints=true``).
+
+Metrics: ``c_err_mean`` and ``c_err_mean_stage1`` (reference frames, after refinement and
+after stage 1), ``t_rot_err_deg_mean`` (root rotation), ``t_pos_err_mean`` (root position,
+fraction of height), ``a_err_deg_mean`` (articulation error over the joints the body parts
+drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of height),
+``silhouette_iou_mean``; ``sec_per_video_frame`` and per stage in timings.json.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from experiments.config import ConfigError, ExperimentConfig
+from experiments.progress import note, progress
+from experiments.stick_time import BUNDLED
+from motion.alignment import chain_align
+from motion.kinematics import euler_to_matrix, forward_kinematics
+from motion.registration import Reference, RegistrationSettings, register
+from motion.registration.approximate import Stage1Settings
+from motion.registration.inputs import features_from_sequence
+from motion.registration.refine import RefineSettings
+from motion.settings import setting
+from motion.synth import SynthConfig, synthesize
+
+TIMINGS = ("sec_per_video_frame", "sec_stage1", "sec_stages23")
+
+
+@dataclass
+class RegisterSyntheticConfig(ExperimentConfig):
+    """Fields of ``experiments/configs/register_synthetic.yaml``."""
+
+    TINY: ClassVar[dict] = {"frames": 8, "particles": 30, "iterations": 2, "restarts": 1}
+
+    reference: str = setting(BUNDLED, "reference BVH", path="file")
+    student: str = setting(
+        "",
+        "another performer's BVH of the same action as the student (empty: the reference "
+        "itself, time-warped and re-articulated)",
+    )
+    warp_seed: int = setting(0, "seed of the synthetic student (time warp, articulation)", ge=0)
+    warp: float = setting(0.3, "largest relative change of playback speed", ge=0, lt=1)
+    articulation: dict[str, float] = setting(
+        {"LeftLeg": 15.0, "RightForeArm": 20.0},
+        "joint -> largest articulation offset of the student, degrees (motion synth's)",
+        ge=0,
+        le=90,
+    )
+    yaw_deg: float = setting(30.0, "the student's turn about the vertical over the video")
+    fps: float = setting(25.0, "video frame rate, Hz", gt=0, le=240)
+    cameras: int = setting(1, "static cameras around the student", ge=1, le=8)
+    size: list[int] = setting([320, 240], "image width, height in pixels", length=2, ge=32)
+    focal_px: float = setting(450.0, "focal length, pixels", gt=0)
+    keypoints: bool = setting(False, "give noisy 2-D joints as an extra observation")
+    frames: int = setting(0, "use the first N video frames only (0: all)", ge=0)
+    particles: int = setting(100, "particles per part (stages 2-3)", ge=2, le=2000)
+    iterations: int = setting(5, "particle BP iterations per run", ge=1, le=50)
+    restarts: int = setting(2, "annealing runs", ge=1, le=10)
+    refine_c: bool = setting(True, "stage 3: refine C through the body graph")
+    scale: float = setting(0.0, "the body scale G if known (0: estimated)", ge=0)
+    seed: int = setting(0, "seed of the registration's draws", ge=0)
+    out_dir: str = setting("runs/register_synthetic", "output folder")
+    tiny: bool = setting(False, "a quick run (8 frames, 30 particles, 2 iterations)")
+
+
+@dataclass
+class Truth:
+    """The synthetic student's true C, T and A."""
+
+    C: Tensor  # (T',) long reference frames
+    rotation: Tensor  # (T', 3, 3) root
+    position: Tensor  # (T', 3) root, metres
+    local: Tensor  # (T', J, 3, 3) the student's local rotations
+    joints: Tensor  # (T', J, 3) metres
+    height: float  # metres
+
+
+def _yaw(angles: Tensor) -> Tensor:
+    c, s = torch.cos(angles), torch.sin(angles)
+    r = torch.zeros(len(angles), 3, 3, dtype=torch.float64)
+    r[:, 0, 0], r[:, 0, 2], r[:, 1, 1], r[:, 2, 0], r[:, 2, 2] = c, s, 1.0, -s, c
+    return r
+
+
+def true_correspondence(student: Reference, shown: Tensor, reference: Reference) -> Tensor:
+    """The monotone alignment of two true 3-D motions, root-normalised: video frame t'
+    (student frame ``shown[t']``) -> the reference frame whose joints in the root's frame are
+    closest on average (chain Viterbi, steps 0..S with S twice the frame ratio, free ends).
+    Joints are matched by name."""
+    names = [n for n in student.skeleton.names if n in reference.skeleton.names]
+    si = [student.skeleton.index(n) for n in names]
+    ri = [reference.skeleton.index(n) for n in names]
+    a = student.body_frames(shown).positions[:, si]  # (T', J, 3)
+    b = reference.body_frames(torch.arange(reference.num_frames)).positions[:, ri]
+    cost = (a[:, None] - b[None]).norm(dim=-1).mean(-1)  # (T', T)
+    step = max(1, math.ceil(2 * (shown[-1] - shown[0]).item() / max(1, len(shown) - 1)))
+    return chain_align(cost, step).path[0]
+
+
+def _truth(seq, reference: Reference, student: Reference | None) -> Truth:
+    arrays = seq.arrays
+    shown = torch.from_numpy(arrays["C_shown"]).long()
+    source = student or reference
+    local = source.rotations[shown].clone()
+    a_deg = torch.from_numpy(arrays["A_deg"])
+    for j in range(source.skeleton.num_joints):
+        if bool((a_deg[:, j] != 0).any()):
+            order = source.skeleton.rotation_orders[j] or "ZYX"
+            local[:, j] = local[:, j] @ euler_to_matrix(torch.deg2rad(a_deg[:, j]), order)
+    rotation = _yaw(torch.from_numpy(arrays["T_yaw_rad"])) @ local[:, 0]
+    joints = torch.from_numpy(arrays["joints3d"])
+    c = shown if student is None else true_correspondence(student, shown, reference)
+    height = float((joints[..., 1].amax(-1) - joints[..., 1].amin(-1)).mean())
+    return Truth(c, rotation, joints[:, 0], local, joints, height)
+
+
+def _angle_deg(a: Tensor, b: Tensor) -> Tensor:
+    trace = (a.transpose(-1, -2) @ b).diagonal(dim1=-2, dim2=-1).sum(-1)
+    return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1, 1)))
+
+
+def _student_joints(reference: Reference, rotations: Tensor, root: Tensor, scale: float):
+    offsets = reference.skeleton.offsets.to(rotations) * scale
+    zero = torch.zeros(rotations.shape[0], 3, dtype=rotations.dtype)
+    fk = forward_kinematics(reference.skeleton, rotations, zero, offsets)
+    return fk.positions - fk.positions[:, :1] + root[:, None]
+
+
+def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
+    refine = RefineSettings(
+        particles=cfg.particles,
+        iterations=cfg.iterations,
+        restarts=cfg.restarts,
+        refine_c=cfg.refine_c,
+        band=min(12, (cfg.particles - 1) // 2),
+    )
+    return RegistrationSettings(Stage1Settings(), refine, scale=cfg.scale or None, seed=cfg.seed)
+
+
+def run(cfg: RegisterSyntheticConfig):
+    synth = SynthConfig(
+        fps=cfg.fps,
+        warp=cfg.warp,
+        articulation=dict(cfg.articulation) if not cfg.student else {},
+        yaw_deg=cfg.yaw_deg,
+        cameras=cfg.cameras,
+        size=list(cfg.size),
+        focal_px=cfg.focal_px,
+        seed=cfg.warp_seed,
+    )
+    seq = synthesize(cfg.reference, synth, student=cfg.student or None)
+    reference = Reference.from_bvh(cfg.reference)
+    student = Reference.from_bvh(cfg.student) if cfg.student else None
+    if student is not None and student.skeleton.names != reference.skeleton.names:
+        raise ConfigError(
+            f"student: {cfg.student} has other joints than {cfg.reference}; expected the "
+            "same skeleton (the true A compares joints by name)"
+        )
+    truth = _truth(seq, reference, student)
+    video = features_from_sequence(seq, keypoints=cfg.keypoints)
+    if cfg.frames:
+        video, truth = _first(video, truth, cfg.frames)
+    n = video.num_frames
+    note(f"register_synthetic: {n} video frames, {reference.num_frames} reference frames")
+    t0 = time.perf_counter()
+    result = register(reference, video, settings=_settings(cfg), progress=progress, log=note)
+    seconds = time.perf_counter() - t0
+
+    driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
+    a_true = reference.rotations[truth.C].transpose(-1, -2) @ truth.local
+    a_err = _angle_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
+    t_rot = _angle_deg(truth.rotation, result.T_rotation)
+    t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
+    joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
+    e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height
+    c_err = (result.C - truth.C).abs().double()
+    c_err1 = (result.C_stage1 - truth.C).abs().double()
+    metrics = {
+        "c_err_mean": float(c_err.mean()),
+        "c_err_mean_stage1": float(c_err1.mean()),
+        "t_rot_err_deg_mean": float(t_rot.mean()),
+        "t_pos_err_mean": float(t_pos.mean()),
+        "a_err_deg_mean": float(a_err.mean()),
+        "e3d_mean": float(e3d.mean()),
+        "silhouette_iou_mean": float(result.fit.mean()),
+        "G": float(result.G),
+        "sec_per_video_frame": seconds / n,
+        "sec_stage1": result.timings["stage1"],
+        "sec_stages23": result.timings["stages23"],
+    }
+    columns = {
+        "frame": np.arange(n),
+        "c_true": truth.C.numpy(),
+        "c_stage1": result.C_stage1.numpy(),
+        "c": result.C.numpy(),
+        "a_err_deg": a_err.mean(-1).numpy(),
+        "t_rot_err_deg": t_rot.numpy(),
+        "e3d": e3d.numpy(),
+        "silhouette_iou": result.fit.numpy(),
+    }
+    joint_names = [reference.skeleton.names[j] for j in driven]
+    data = {"columns": columns, "joints": joint_names, "joint_err": a_err.mean(0).numpy()}
+    return metrics, columns, data
+
+
+def _first(video, truth: Truth, n: int):
+    if n > video.num_frames:
+        raise ConfigError(f"frames must be <= {video.num_frames} (the video's); got {n}")
+    video = video.cut(slice(0, n))
+    cut = Truth(
+        truth.C[:n],
+        truth.rotation[:n],
+        truth.position[:n],
+        truth.local[:n],
+        truth.joints[:n],
+        truth.height,
+    )
+    return video, cut
+
+
+def plot(path, data, title: str) -> None:
+    """Left: true C, stage 1's and the final one against the video frame; right: the mean
+    articulation error of each joint."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = data["columns"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=100)
+    ax = axes[0]
+    ax.plot(c["frame"], c["c_true"], "-", color="0.2", lw=2, label="true C")
+    ax.plot(c["frame"], c["c_stage1"], "--", color="C0", lw=1, label="stage 1")
+    ax.plot(c["frame"], c["c"], "-", color="C3", lw=1, label="stages 2-3")
+    ax.set_xlabel("video frame t'")
+    ax.set_ylabel("reference frame C(t')")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    ax = axes[1]
+    y = np.arange(len(data["joints"]))
+    ax.barh(y, data["joint_err"], color="C3")
+    ax.set_yticks(y, data["joints"], fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel("articulation error, degrees (mean over frames)")
+    ax.grid(alpha=0.3, axis="x")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

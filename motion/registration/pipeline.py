@@ -1,0 +1,161 @@
+"""The registration pipeline: a 3-D reference against a video, stages 0-3 in order.
+
+``register(reference, video)`` -> :class:`~motion.registration.types.Registration`:
+
+* stage 0 -- the cameras (given with the features, or from :mod:`motion.registration.cameras`)
+  and the body scale G (:func:`~motion.registration.approximate.estimate_body_scale`, or
+  given);
+* stage 1 -- approximate registration: per candidate pair the best rigid T, then C by the
+  monotone chain, coarse to fine (:func:`~motion.registration.approximate.
+  approximate_registration`);
+* stages 2-3 -- T and A by particle BP on the spatiotemporal body graph, alternating with C
+  through the same graph (:func:`~motion.registration.refine.refine`).
+
+Every stage is a function with typed inputs and outputs; this module only runs them in order,
+times them and assembles the result. Deterministic under ``settings.seed``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from motion.body.observation import PartShapes, body_layers
+from motion.cameras import CameraRig
+from motion.registration.approximate import (
+    Stage1Settings,
+    approximate_registration,
+    estimate_body_scale,
+)
+from motion.registration.refine import Progress, RefineSettings, refine
+from motion.registration.types import (
+    Reference,
+    Registration,
+    RegistrationError,
+    VideoFeatures,
+    scaled_spec,
+)
+from motion.render import project_parts
+
+__all__ = ["RegistrationSettings", "register", "silhouette_iou"]
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """Settings of the whole pipeline (each stage's constants live in its own settings).
+
+    Attributes:
+        stage1: approximate registration (:class:`Stage1Settings`).
+        refine: stages 2-3 (:class:`RefineSettings`).
+        scale: the body scale G if known (``None``: estimated in stage 0).
+        seed: seed of every random draw.
+    """
+
+    stage1: Stage1Settings = field(default_factory=Stage1Settings)
+    refine: RefineSettings = field(default_factory=RefineSettings)
+    scale: float | None = None
+    seed: int = 0
+
+
+def silhouette_iou(shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor) -> Tensor:
+    """Per frame, the IoU of the rendered body against the observed silhouettes, mean over
+    cameras. ``silhouettes`` ``(T', C, H, W)`` in [0, 1] (thresholded at 0.5), ``poses``
+    ``(T', P, 7)`` -> ``(T',)``."""
+    h, w = silhouettes.shape[-2:]
+    segments = shapes.segments(poses, torch.arange(shapes.num_parts))
+    covered = body_layers(project_parts(rig, segments, shapes.radii.to(poses)), h, w).label >= 0
+    seen = silhouettes > 0.5
+    inter = (covered & seen).flatten(2).sum(-1).float()
+    union = (covered | seen).flatten(2).sum(-1).float().clamp_min(1)
+    return (inter / union).mean(-1)
+
+
+def register(
+    reference: Reference | str | Path,
+    video: VideoFeatures,
+    cameras: CameraRig | None = None,
+    settings: RegistrationSettings | None = None,
+    progress: Progress | None = None,
+    log: Callable[[str], None] | None = None,
+) -> Registration:
+    """Register a reference motion to a video.
+
+    Args:
+        reference: a :class:`Reference` or a BVH path.
+        video: the video's features and cameras (:class:`VideoFeatures`).
+        cameras: a calibrated rig replacing ``video.cameras`` (e.g. the ``rig`` of
+            :func:`motion.registration.cameras.initialise_cameras`).
+        settings: :class:`RegistrationSettings` (defaults otherwise).
+        progress: ``progress(items, description, total)`` wrapping each stage's loop (e.g.
+            a tqdm bar); ``None``: silent.
+        log: called with a one-line message after each step of stage 1 (``None``:
+            silent).
+
+    Returns:
+        :class:`Registration`: C, T and A per video frame, G, per-frame silhouette IoU,
+        stage 1's C and the seconds per stage.
+    """
+    s = settings or RegistrationSettings()
+    if not isinstance(reference, Reference):
+        reference = Reference.from_bvh(reference)
+    if cameras is not None:
+        video = VideoFeatures(
+            video.observation, cameras, video.frame_rate, video.keypoint_joints, video.name
+        )
+    if video.num_frames < 2:
+        raise RegistrationError(
+            f"{video.name}: expected at least 2 video frames; got {video.num_frames}"
+        )
+    generator = torch.Generator().manual_seed(s.seed)
+    timings, notes = {}, {}
+
+    t0 = time.perf_counter()
+    if s.scale is None:
+        scale, notes["G"] = estimate_body_scale(reference, video, s.stage1, generator)
+    else:
+        scale, notes["G"] = float(s.scale), "given"
+    timings["stage0"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    stage1 = approximate_registration(reference, video, scale, s.stage1, generator, log)
+    timings["stage1"] = time.perf_counter() - t0
+    notes["stage1_pairs"] = str(stage1.pair_evaluations)
+
+    t0 = time.perf_counter()
+    refined = refine(
+        reference,
+        video,
+        stage1.C,
+        stage1.rotation,
+        stage1.translation,
+        scale,
+        s.refine,
+        generator,
+        progress=progress,
+    )
+    timings["stages23"] = time.perf_counter() - t0
+    notes["stage3_rounds"] = f"{len(refined.c_changes)} (frames changed: {refined.c_changes})"
+
+    c = refined.C
+    a = reference.rotations[c].transpose(-1, -2) @ refined.rotations
+    a[:, 0] = torch.eye(3, dtype=a.dtype)
+    spec = scaled_spec(reference.spec, scale)
+    shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
+    fit = silhouette_iou(shapes, video.cameras, video.observation.silhouette[0], refined.poses)
+    return Registration(
+        C=c,
+        T_rotation=refined.rotations[:, 0],
+        T_translation=refined.translation,
+        A=a,
+        G=scale,
+        rotations=refined.rotations,
+        fit=fit,
+        C_stage1=stage1.C,
+        timings=timings,
+        notes=notes,
+    )

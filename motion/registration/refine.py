@@ -1,0 +1,475 @@
+"""Stages 2 and 3: T and A given C by particle BP on the spatiotemporal body graph, and C
+refined through the same graph (the proposal's Section 6.2).
+
+**Stage 2** (6.2.1): one SE(3) node per (video frame, body part), kinematic edges within a
+frame (:class:`motion.body.graph.Connections`), temporal edges between a part and itself in
+the next frame, the occlusion-aware observation factor of every camera
+(:class:`motion.body.observation.BodyObservation`), and a pull of each part toward the
+reference posture at C(t') placed by the current T (the articulation prior: as little change
+to the reference as explains the video).
+
+**Stage 3** (6.2.2): C joins the same graph as a chain of discrete nodes, one per video
+frame, whose states are the reference frames of a band around the current C, with monotone
+transitions (:class:`pgm.BandedMonotoneFactor`); each C node is coupled to its frame's part
+nodes by :class:`pgm.LookupPose` -- state c pulls part p toward ``T(t') B_{c, p}`` -- which
+replaces stage 2's fixed prior. One :func:`pgm.particle_bp` run passes messages between the
+chain and the parts (hybrid messages): the parts see a mixture over the band of reference
+postures, the chain sees how well each reference frame's posture agrees with the parts'
+particles. Between runs the posture is fitted to the skeleton (T and A), the band is
+re-centred on the new C, and the rounds stop when C stops changing.
+
+Long videos are cut into windows with overlap (memory stays bounded, cost grows linearly);
+each frame keeps the estimate of the window in which it lies farthest from an edge.
+
+Units: metres, radians; frames are 0-based indices. Shapes: ``T'`` video frames, ``P``
+parts, ``J`` joints, ``K`` particles, ``W`` band states.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+
+import torch
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
+from torch import Tensor
+
+from motion.alignment import slope_step_cost
+from motion.body.fit import fit_part_rotations, fit_posture, rigid_fit
+from motion.body.graph import Connections, PosturePrior, Temporal, relative_rotations
+from motion.body.observation import (
+    BodyObservation,
+    Edges,
+    Intensity,
+    Joints2D,
+    PartShapes,
+    Silhouette,
+    body_layers,
+)
+from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
+from motion.render import project_parts
+from pgm import (
+    SE3,
+    BandedMonotoneFactor,
+    Discrete,
+    Geometric,
+    LookupPose,
+    MaxSemiring,
+    ParticleGraph,
+    RigidConnection,
+    SpatioTemporalTemplate,
+    particle_bp,
+)
+from pgm.rotations import qmul
+
+__all__ = [
+    "RefineResult",
+    "RefineSettings",
+    "estimate_part_colours",
+    "part_keypoints",
+    "place_poses",
+    "refine",
+]
+
+Progress = Callable[[Iterable, str, int], Iterator]
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Every tuning constant of stages 2 and 3, in one place.
+
+    Attributes:
+        particles: K per part. iterations, restarts: particle BP passes (the proposal runs
+            6 iterations twice).
+        window, overlap: video frames per window and shared between neighbours.
+        prior_pos_std, prior_rot_std: the articulation prior's spreads (metres, radians);
+            broad, so that the images decide the articulation where they can.
+        connection: the kinematic edges' position spread and schedules (see
+            :class:`Connections`; its ``rot_std`` and ``rel_rot`` are replaced by the
+            articulation prior's).
+        articulation_std: radians, the spread of each joint's rotation about the
+            reference's at C(t') (the articulation prior ``E_A`` on the kinematic edges).
+        twist_from_reference: fit each part's rotation to its axis and its children's
+            joints, the rest (a limb's twist) from the reference
+            (:func:`motion.body.fit.fit_part_rotations`); ``False``: BP's rotations as
+            they are.
+        landmark_std: metres, how far BP's part ends typically land from the truth (what
+            the posture fit weighs them by against the articulation prior).
+        whole_body_t: T's rotation from the whole body (the reference posture at C fitted
+            rigidly to every estimated landmark), not from the root part alone (a pelvis
+            is too small to orient well); needs ``twist_from_reference``.
+        temporal: temporal edges (``None``: frames independent).
+        silhouette, edges, intensity, joints: cue weights (nats per pixel, or per joint
+            for the 2-D joints); 0 leaves a cue out.
+        joints_sigma: pixels, the 2-D joints cue's Cauchy scale.
+        kernel_scale, kernel_end: the proposal kernels' spreads (metres, radians) and their
+            final multiplier (annealed geometrically).
+        refine_c: run stage 3 (C through the chain) after stage 2.
+        rounds: at most this many stage 3 rounds (each one particle BP run per window).
+        band: half-width of C's band, reference frames.
+        couple_pos_std, couple_rot_std: the coupling's spreads (as the prior's).
+        max_step_factor: C's largest step is this times the frame-rate ratio.
+        reanchor: place the next round's reference postures by the T fitted to this
+            round's estimate (``False``: by the start T throughout; on the synthetic walk,
+            one camera, that left stage 1's T errors in place: T 22 vs 9 degrees, C 9.4 vs
+            4.4 frames).
+        slope_weight: nats of C's slope prior, ``w ((s - ratio) / ratio)^2`` for a step of
+            ``s`` reference frames (:func:`motion.alignment.slope_step_cost`).
+    """
+
+    particles: int = 100
+    iterations: int = 5
+    restarts: int = 2
+    window: int = 24
+    overlap: int = 4
+    prior_pos_std: float = 0.08
+    prior_rot_std: float = 0.5
+    connection: Connections = field(
+        default_factory=lambda: Connections(0.02, 1.0, Geometric(1.0, 0.25, 5))
+    )
+    articulation_std: float = 0.2
+    twist_from_reference: bool = True
+    landmark_std: float = 0.03
+    whole_body_t: bool = True
+    temporal: Temporal | None = field(default_factory=Temporal)
+    silhouette: float = 1.0
+    edges: float = 0.2
+    intensity: float = 0.05
+    joints: float = 1.0
+    joints_sigma: float = 4.0
+    kernel_scale: tuple[float, float] = (0.02, 0.5)
+    kernel_end: float = 0.05
+    refine_c: bool = True
+    rounds: int = 3
+    band: int = 12
+    couple_pos_std: float = 0.04
+    couple_rot_std: float = 0.25
+    max_step_factor: float = 2.5
+    reanchor: bool = True
+    slope_weight: float = 1.0
+
+    def __post_init__(self):
+        if self.particles < 2 or self.iterations < 1 or self.restarts < 1:
+            raise RegistrationError(
+                f"particles >= 2, iterations >= 1, restarts >= 1 expected; got "
+                f"{self.particles}, {self.iterations}, {self.restarts}"
+            )
+        if not 0 <= self.overlap < self.window:
+            raise RegistrationError(
+                f"overlap must be in [0, window); got overlap={self.overlap}, window={self.window}"
+            )
+        if self.refine_c and 2 * self.band + 1 > self.particles:
+            raise RegistrationError(
+                f"C's band of 2 * {self.band} + 1 states must fit in the {self.particles} "
+                "particles (a discrete node's states share the particle axis)"
+            )
+
+
+@dataclass
+class RefineResult:
+    """Stages 2-3 output. poses: ``(T', P, 7)`` part poses; C: ``(T',)`` long;
+    rotations: ``(T', J, 3, 3)`` local (root's = T's rotation); translation: ``(T', 3)``
+    root position, metres; rounds: stage 3 rounds run; c_changes: frames whose C changed in
+    each round."""
+
+    poses: Tensor
+    C: Tensor
+    rotations: Tensor
+    translation: Tensor
+    rounds: int
+    c_changes: list[int]
+
+
+# -- geometry helpers -----------------------------------------------------------------------
+def place_poses(rotation: Tensor, translation: Tensor, poses: Tensor) -> Tensor:
+    """``T`` applied to part poses in the root's frame: ``(..., 3, 3)``, ``(..., 3)``,
+    ``(..., P, 7)`` -> ``(..., P, 7)`` (positions rotated and moved, frames rotated)."""
+    q = rotation_matrix_to_quaternion(rotation.contiguous()).to(poses)  # (..., 4) w first
+    pos = (rotation.to(poses)[..., None, :, :] @ poses[..., :3, None]).squeeze(-1)
+    pos = pos + translation.to(poses)[..., None, :]
+    quat = qmul(q[..., None, :].expand_as(poses[..., 3:7]), poses[..., 3:7])
+    return torch.cat([pos, quat], -1)
+
+
+def part_keypoints(reference: Reference, keypoint_joints: list[str] | None) -> Tensor | None:
+    """``(P, 2)`` long: the keypoint column at each part's proximal and distal landmark
+    (-1: none), for :class:`motion.body.observation.Joints2D`. A landmark is matched when
+    the body model places it on exactly one skeleton joint that has a keypoint column."""
+    if keypoint_joints is None:
+        return None
+    column = {name: i for i, name in enumerate(keypoint_joints)}
+    model, spec = reference.model, reference.spec
+    out = torch.full((spec.num_parts, 2), -1, dtype=torch.long)
+    for p in range(spec.num_parts):
+        for end, role in enumerate((spec.from_roles[p], spec.to_roles[p])):
+            names = model.mapping[model.roles[int(role)]]
+            if len(names) == 1 and names[0] in column:
+                out[p, end] = column[names[0]]
+    return out if (out >= 0).any() else None
+
+
+def estimate_part_colours(shapes: PartShapes, video: VideoFeatures, poses: Tensor) -> Tensor:
+    """Each part's colour: the median of the image where the rendered posture shows that
+    part in front and the silhouette agrees, over every frame and camera -- the student's
+    appearance learnt from the current estimate. ``poses`` ``(T', P, 7)`` -> ``(P, 3)`` in
+    [0, 1]; a part never seen gets the median colour of the whole silhouette."""
+    obs = video.observation
+    if obs.image is None:
+        raise RegistrationError(f"{video.name}: no colour images to learn part colours from")
+    h, w = obs.size
+    segments = shapes.segments(poses, torch.arange(shapes.num_parts))
+    labels = body_layers(project_parts(video.cameras, segments, shapes.radii.to(poses)), h, w)
+    label = labels.label  # (T', C, H, W)
+    image = obs.image[0].permute(0, 1, 3, 4, 2)  # (T', C, H, W, 3)
+    on = obs.silhouette[0] > 0.5
+    whole = image[on].median(0).values if on.any() else torch.full((3,), 0.5)
+    out = whole.expand(shapes.num_parts, 3).clone()
+    for p in range(shapes.num_parts):  # P medians; a loop over 15 parts, not over pixels
+        mask = (label == p) & on
+        if int(mask.sum()) >= 10:
+            out[p] = image[mask].median(0).values
+    return out
+
+
+def _window_starts(frames: int, window: int, overlap: int) -> list[int]:
+    if frames <= window:
+        return [0]
+    step = window - overlap
+    starts = [*range(0, frames - window, step), frames - window]
+    return sorted(set(starts))
+
+
+def _owner(frames: int, starts: list[int], window: int) -> Tensor:
+    """``(T',)`` which window each frame takes its estimate from: the one in which it lies
+    farthest from an edge."""
+    t = torch.arange(frames)
+    best = torch.full((frames,), -1.0)
+    owner = torch.zeros(frames, dtype=torch.long)
+    for i, s in enumerate(starts):
+        inside = (t >= s) & (t < s + window)
+        margin = torch.minimum(t - s, s + window - 1 - t).float()
+        better = inside & (margin > best)
+        owner[better], best[better] = i, margin[better]
+    return owner
+
+
+# -- the engine ------------------------------------------------------------------------------
+@dataclass
+class _Problem:
+    """What every window shares."""
+
+    reference: Reference
+    video: VideoFeatures
+    scale: float
+    settings: RefineSettings
+    shapes: PartShapes
+    cues: list
+    body: Tensor  # (T, P, 7) reference part poses in the root frame (float32, scaled)
+    max_step: int
+    step_log_potential: Tensor  # (max_step + 1,) C's slope prior
+    connection_offsets: Tensor  # (E, 3) each joint in its parent part's frame, metres
+
+
+def _cues(reference: Reference, video: VideoFeatures, settings: RefineSettings, colours):
+    obs = video.observation
+    cues = []
+    if settings.silhouette > 0:
+        cues.append(Silhouette(settings.silhouette, settings.silhouette))
+    if settings.edges > 0 and obs.edge_distance is not None:
+        cues.append(Edges(settings.edges))
+    if settings.intensity > 0 and colours is not None:
+        cues.append(Intensity(colours, settings.intensity))
+    keys = part_keypoints(reference, video.keypoint_joints)
+    if settings.joints > 0 and keys is not None and obs.keypoints is not None:
+        cues.append(Joints2D(keys, settings.joints, settings.joints_sigma))
+    if not cues:
+        raise RegistrationError("every observation cue is switched off or has no input")
+    return cues
+
+
+def _run_window(
+    problem: _Problem,
+    frames: slice,
+    c: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    couple: bool,
+    generator: torch.Generator,
+) -> tuple[Tensor, Tensor]:
+    """One particle BP run over a window. Returns part poses ``(n, P, 7)`` and C ``(n,)``
+    (unchanged without ``couple``)."""
+    s = problem.settings
+    spec = problem.reference.spec
+    p = spec.num_parts
+    n = frames.stop - frames.start
+    obs = problem.video.cut(frames).observation
+    unary = BodyObservation(problem.shapes, problem.video.cameras, obs, cues=problem.cues)
+    template = SpatioTemporalTemplate(
+        p, temporal=None if s.temporal is None else s.temporal.factor()
+    )
+    pairwise = [_kinematic_edges(problem, problem.body[c]), *template.build(n)]
+    v_body = n * p
+    body_nodes = torch.arange(v_body)
+    spaces = [(SE3(), body_nodes)]
+    unaries = [(body_nodes, unary)]
+    if couple:
+        width = 2 * s.band + 1
+        last = problem.body.shape[0] - 1
+        offsets = (c - s.band).clamp(0, max(0, last + 1 - width))
+        states = (offsets[:, None] + torch.arange(width)).clamp(max=last)  # (n, W)
+        targets = place_poses(
+            rotation[:, None], translation[:, None], problem.body[states]
+        )  # (n, W, P, 7)
+        chain_nodes = v_body + torch.arange(n)
+        spaces.append((Discrete(width), chain_nodes))
+        if n > 1:
+            chain = torch.stack([chain_nodes[:-1], chain_nodes[1:]], 1)
+            factor = BandedMonotoneFactor(problem.max_step, offsets, problem.step_log_potential)
+            pairwise.append((chain, factor))
+        edges = torch.stack([chain_nodes.repeat_interleave(p), body_nodes], 1)
+        per_edge = targets.permute(0, 2, 1, 3).reshape(v_body, width, 7)
+        pairwise.append((edges, LookupPose(per_edge, s.couple_pos_std, s.couple_rot_std)))
+        start = place_poses(rotation, translation, problem.body[c])
+    else:
+        start = place_poses(rotation, translation, problem.body[c])  # (n, P, 7)
+        unaries.append((body_nodes, PosturePrior(start, s.prior_pos_std, s.prior_rot_std)))
+    graph = ParticleGraph(v_body + (n if couple else 0), spaces, pairwise, unaries)
+    k = s.particles
+    initial = torch.zeros(1, graph.num_nodes, k, 7)
+    initial[:, :v_body] = SE3().perturb(
+        start.reshape(1, v_body, 1, 7).expand(1, v_body, k, 7).float(), (0.02, 0.1), generator
+    )
+    result = particle_bp(
+        graph,
+        initial,
+        iterations=s.iterations,
+        restarts=s.restarts,
+        generator=generator,
+        semiring=MaxSemiring(),
+        kernel_scale=[s.kernel_scale, None] if couple else s.kernel_scale,
+        kernel_schedule=Geometric(1.0, s.kernel_end, s.iterations),
+        proposal_centres=min(30, k),
+    )
+    poses = result.best[0, :v_body].reshape(n, p, 7)
+    if not couple:
+        return poses, c
+    chosen = result.best[0, v_body:, 0].round().long()
+    return poses, states.gather(1, chosen[:, None]).squeeze(1)
+
+
+def _kinematic_edges(problem: _Problem, reference: Tensor) -> tuple[Tensor, RigidConnection]:
+    """The kinematic edges of every frame of a window, each joint's rotation kernel centred
+    on the reference posture's relative rotation at C(t') (``reference`` ``(n, P, 7)``):
+    the articulation prior ``E_A`` -- a joint pays for turning away from the reference,
+    about every axis, including the twist about a limb's axis that no silhouette shows."""
+    spec, c = problem.reference.spec, problem.settings.connection
+    n, e = reference.shape[0], spec.edges.shape[0]
+    edges = (spec.edges[None] + (torch.arange(n) * spec.num_parts)[:, None, None]).reshape(-1, 2)
+    offsets = problem.connection_offsets.repeat(n, 1)
+    factor = RigidConnection(
+        offsets,
+        torch.zeros(3),
+        c.pos_std,
+        problem.settings.articulation_std,
+        relative_rotations(spec, reference).reshape(n * e, 4).float(),
+        schedule=c.schedule,
+        rotation_schedule=c.rotation_schedule,
+    )
+    return edges, factor
+
+
+def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """The skeleton posture of part poses: local rotations ``(T', J, 3, 3)`` and the root
+    position ``(T', 3)``; joints no part drives keep the reference's rotations at C."""
+    ref = problem.reference
+    g = problem.scale
+    unit = torch.cat([poses[..., :3].double() / g, poses[..., 3:].double()], -1)
+    body = problem.body[c].double()
+    body = torch.cat([body[..., :3] / g, body[..., 3:]], -1)  # B at C, unit size
+    root = None
+    if problem.settings.whole_body_t:
+        # T: the reference posture at C fitted rigidly to every estimated landmark
+        flat = ref.spec.landmarks(body).flatten(-3, -2)
+        root, _ = rigid_fit(flat, ref.spec.landmarks(unit).flatten(-3, -2))
+    if problem.settings.twist_from_reference:
+        # MAP weight of the reference pull: landmarks of std sigma against joint angles of
+        # std articulation_std give sigma^2 / (2 articulation_std^2) (m^2)
+        s = problem.settings
+        weight = s.landmark_std**2 / (2 * s.articulation_std**2)
+        unit = fit_part_rotations(ref.spec, unit, body, weight, root_rotation=root)
+    posture = fit_posture(ref.spec, ref.skeleton, ref.model, unit, ref.rotations[c])
+    return posture.rotations, posture.fk.positions[:, 0] * g
+
+
+def refine(
+    reference: Reference,
+    video: VideoFeatures,
+    c: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    scale: float,
+    settings: RefineSettings | None = None,
+    generator: torch.Generator | None = None,
+    colours: Tensor | None = None,
+    progress: Progress | None = None,
+) -> RefineResult:
+    """Stages 2 (and 3): T, A (and C) from a start ``C`` ``(T',)`` long and root transforms
+    ``rotation`` ``(T', 3, 3)``, ``translation`` ``(T', 3)`` metres (stage 1's), body scale
+    ``scale`` (G). ``colours``: ``(P, 3)`` part colours for the intensity cue (``None``:
+    learnt from the images at the start posture when the video has colour)."""
+    s = settings or RefineSettings()
+    g = generator or torch.Generator().manual_seed(0)
+    t = video.num_frames
+    if c.shape != (t,) or rotation.shape != (t, 3, 3) or translation.shape != (t, 3):
+        raise RegistrationError(
+            f"expected C ({t},), rotation ({t}, 3, 3), translation ({t}, 3); got "
+            f"{tuple(c.shape)}, {tuple(rotation.shape)}, {tuple(translation.shape)}"
+        )
+    spec = scaled_spec(reference.spec, scale)
+    shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
+    body = reference.body_poses(torch.arange(reference.num_frames), scale).float()
+    rotation, translation = rotation.float(), translation.float()
+    if colours is None and video.observation.image is not None and s.intensity > 0:
+        colours = estimate_part_colours(shapes, video, place_poses(rotation, translation, body[c]))
+    ratio = reference.frame_rate / video.frame_rate
+    max_step = max(1, math.ceil(s.max_step_factor * ratio))
+    problem = _Problem(
+        reference,
+        video,
+        float(scale),
+        s,
+        shapes,
+        _cues(reference, video, s, colours),
+        body,
+        max_step,
+        -slope_step_cost(max_step, ratio, s.slope_weight).float(),
+        spec.offsets[spec.edges[:, 1]].float(),
+    )
+    starts = _window_starts(t, s.window, s.overlap)
+    owner = _owner(t, starts, s.window)
+    wrap = progress or (lambda items, desc, total: items)
+    c = c.clone()
+    poses = torch.zeros(t, spec.num_parts, 7)
+    changes: list[int] = []
+    rounds = 1 + (s.rounds if s.refine_c else 0)
+    for r in range(rounds):
+        couple = r > 0
+        new_c = c.clone()
+        label = "stage 2 (T, A)" if not couple else f"stage 3 (C) round {r}"
+        for i in wrap(range(len(starts)), label, len(starts)):
+            sl = slice(starts[i], min(t, starts[i] + s.window))
+            est, c_win = _run_window(problem, sl, c[sl], rotation[sl], translation[sl], couple, g)
+            mine = owner[sl] == i
+            poses[sl][mine] = est[mine]
+            new_c[sl][mine] = c_win[mine]
+        if s.reanchor:
+            local, root = _fit(problem, poses, new_c)
+            rotation, translation = local[:, 0].float(), root.float()
+        if couple:
+            changes.append(int((new_c != c).sum()))
+            c = torch.cummax(new_c, 0).values  # windows meet monotonically
+            if changes[-1] == 0:
+                break
+    local, root = _fit(problem, poses, c)
+    return RefineResult(poses, c, local, root, rounds, changes)

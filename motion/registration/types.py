@@ -1,0 +1,225 @@
+"""What the registration stages pass between them: typed inputs and outputs.
+
+Notation of the proposal (Section 4.4): video frame ``t'`` corresponds to reference frame
+``C(t')``; the body's global rigid transform ``T(t')`` is the student's **root joint**
+transform (rotation and position in the cameras' world frame); the articulation ``A(t')`` is,
+per joint, the local rotation that turns the reference's joint rotation at ``C(t')`` into the
+student's, ``R_student = R_reference A`` (identity for the root, whose rotation is ``T``);
+``G`` scales the reference skeleton's bone lengths and part widths to the student.
+
+The reference's posture at frame ``t`` with its root at the origin, unrotated, is ``B_t``
+(:meth:`Reference.body_frames`): the student's joints are ``R_T (G B_t) + p_T`` when A = 0.
+
+Units: metres, radians (degrees only in reports and :attr:`Registration.a_degrees`), frames
+as 0-based integer indices. Shapes: ``T'`` video frames, ``T`` reference frames, ``J``
+skeleton joints, ``P`` body parts, ``C`` cameras, ``H x W`` images.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from motion.body.observation import Observation, PartShapes
+from motion.body.spec import BodySpec
+from motion.bodyparts import BodyModel
+from motion.bvh import read_bvh
+from motion.cameras import CameraRig
+from motion.kinematics import FKResult, Skeleton, forward_kinematics, local_rotations
+
+__all__ = ["Reference", "Registration", "RegistrationError", "VideoFeatures", "scaled_spec"]
+
+
+class RegistrationError(ValueError):
+    """Inputs that registration cannot work with (the message names what and why)."""
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A 3-D reference motion, ready to register against.
+
+    Attributes:
+        skeleton: the joint tree (metres).
+        model: the capsule body model on it (:class:`motion.bodyparts.BodyModel`).
+        spec: the body graph's parts (:class:`motion.body.spec.BodySpec`), measured on the
+            whole motion.
+        rotations: ``(T, J, 3, 3)`` float64 local joint rotations per frame.
+        root: ``(T, 3)`` float64 root translation per frame, metres (``forward_kinematics``'s).
+        frame_rate: Hz.
+        name: where it came from (a path, for messages and reports).
+    """
+
+    skeleton: Skeleton
+    model: BodyModel
+    spec: BodySpec
+    rotations: Tensor
+    root: Tensor
+    frame_rate: float
+    name: str = "reference"
+
+    @classmethod
+    def from_bvh(
+        cls,
+        path: str | Path,
+        limits: dict | str | Path | None = None,
+        drop_reference_pose: bool = True,
+    ) -> Reference:
+        """Read a BVH (frame 0 dropped when it is a converter's reference pose, as
+        :mod:`motion.synth` does) and build its body model and spec (``limits`` as
+        :meth:`BodySpec.from_motion`)."""
+        bvh = read_bvh(path)
+        skeleton = Skeleton.from_bvh(bvh)
+        motion = bvh.motion_frames() if drop_reference_pose else bvh.motion
+        rotations, root = local_rotations(
+            skeleton, torch.from_numpy(motion).to(torch.float64), bvh.channels
+        )
+        model = BodyModel.from_skeleton(skeleton)
+        spec = BodySpec.from_motion(
+            skeleton, model, forward_kinematics(skeleton, rotations, root), limits
+        )
+        return cls(skeleton, model, spec, rotations, root, float(bvh.frame_rate), str(path))
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotations.shape[0])
+
+    def body_frames(self, frames: Tensor, scale: float | Tensor = 1.0) -> FKResult:
+        """``B_t`` at reference ``frames`` (any shape ``S``): the posture with the root joint
+        at the origin and its rotation the identity, bones scaled by ``scale`` (G).
+        Returns an :class:`FKResult` with positions ``(*S, J, 3)`` metres (float64)."""
+        frames = torch.as_tensor(frames, dtype=torch.long)
+        if frames.numel() and (int(frames.min()) < 0 or int(frames.max()) >= self.num_frames):
+            raise RegistrationError(
+                f"reference frames must be in [0, {self.num_frames}); got "
+                f"{int(frames.min())}..{int(frames.max())}"
+            )
+        rot = self.rotations[frames].clone()
+        rot[..., 0, :, :] = torch.eye(3, dtype=rot.dtype)
+        offsets = self.skeleton.offsets.to(rot).clone()
+        offsets[0] = 0.0  # the root joint sits at the origin
+        zero = torch.zeros(*frames.shape, 3, dtype=rot.dtype)
+        fk = forward_kinematics(self.skeleton, rot, zero, offsets)
+        # the root is at the origin, so scaling every position scales every bone
+        return FKResult(fk.positions * scale, fk.rotations)
+
+    def body_poses(self, frames: Tensor, scale: float | Tensor = 1.0) -> Tensor:
+        """Part poses of ``B_t`` (:meth:`body_frames`): ``(*S, P, 7)`` float64 in the root's
+        frame (proximal landmark in metres, frame quaternion ``w`` first)."""
+        poses = self.spec.poses(self.model, self.skeleton, self.body_frames(frames))
+        return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
+
+
+def scaled_spec(spec: BodySpec, scale: float | Tensor) -> BodySpec:
+    """The spec of a body ``scale`` (G) times the size: capsule axes, radii and joint
+    offsets multiplied; rotations, tree and limits unchanged."""
+    scale = float(scale)
+    if scale == 1.0:
+        return spec
+    shapes = PartShapes(spec.shapes.axis * scale, spec.shapes.radii * scale)
+    return dataclasses.replace(spec, shapes=shapes, offsets=spec.offsets * scale)
+
+
+@dataclass
+class VideoFeatures:
+    """What the cameras saw, as features, with the cameras.
+
+    Attributes:
+        observation: :class:`motion.body.observation.Observation` of the ``T'`` frames
+            (batch 1): silhouettes ``(1, T', C, H, W)``, optional edge distances, colour
+            images and 2-D keypoints ``(1, T', C, K, 3)``.
+        cameras: the calibrated rig (C cameras) in the world frame of the result.
+        frame_rate: video frames per second.
+        keypoint_joints: for each keypoint column, the reference skeleton joint it is
+            (``None``: no keypoints, or columns not matched to joints).
+        name: where it came from (for messages and reports).
+    """
+
+    observation: Observation
+    cameras: CameraRig
+    frame_rate: float
+    keypoint_joints: list[str] | None = None
+    name: str = "video"
+
+    def __post_init__(self):
+        sil = self.observation.silhouette
+        if sil.shape[0] != 1:
+            raise RegistrationError(
+                f"{self.name}: expected one video (batch 1); got {sil.shape[0]}"
+            )
+        if sil.shape[2] != self.cameras.num_cameras:
+            raise RegistrationError(
+                f"{self.name}: {sil.shape[2]} camera streams but {self.cameras.num_cameras} "
+                "calibrated cameras"
+            )
+        if not self.frame_rate > 0:
+            raise RegistrationError(f"{self.name}: frame_rate must be > 0; got {self.frame_rate}")
+        kp = self.observation.keypoints
+        if self.keypoint_joints is not None and (
+            kp is None or kp.shape[3] != len(self.keypoint_joints)
+        ):
+            given = None if kp is None else kp.shape[3]
+            raise RegistrationError(
+                f"{self.name}: {len(self.keypoint_joints)} keypoint joint names but "
+                f"{given} keypoint columns"
+            )
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.observation.silhouette.shape[1])
+
+    def cut(self, frames: slice) -> VideoFeatures:
+        """The same video restricted to ``frames`` (a slice of video frames)."""
+        obs = self.observation
+
+        def part(x):
+            return None if x is None else x[:, frames]
+
+        cut = Observation(
+            obs.silhouette[:, frames], part(obs.edge_distance), part(obs.image), part(obs.keypoints)
+        )
+        return dataclasses.replace(self, observation=cut)
+
+
+@dataclass
+class Registration:
+    """The result: C, T and A per video frame, G, fit scores and timings.
+
+    Attributes:
+        C: ``(T',)`` long, reference frame of each video frame.
+        T_rotation: ``(T', 3, 3)`` the student root's global rotation.
+        T_translation: ``(T', 3)`` the student root's position, metres.
+        A: ``(T', J, 3, 3)`` articulation: per joint ``R_reference(C)^T R_student`` of the
+            local rotations (identity for the root and for joints no part drives).
+        G: body scale (bone lengths and widths relative to the reference).
+        rotations: ``(T', J, 3, 3)`` the student's local rotations (root's = T_rotation).
+        fit: ``(T',)`` per-frame fit score, silhouette IoU of the registered body against
+            the observed silhouettes (mean over cameras), in [0, 1].
+        C_stage1: ``(T',)`` C after approximate registration (stage 1).
+        timings: seconds per stage (``"stage0"``, ``"stage1"``, ``"stage2"``, ...).
+        notes: what was estimated and how (e.g. the body scale's source), for reports.
+    """
+
+    C: Tensor
+    T_rotation: Tensor
+    T_translation: Tensor
+    A: Tensor
+    G: float
+    rotations: Tensor
+    fit: Tensor
+    C_stage1: Tensor
+    timings: dict[str, float] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.C.shape[0])
+
+    @property
+    def a_degrees(self) -> Tensor:
+        """``(T', J)`` the rotation angle of each joint's articulation, degrees."""
+        trace = self.A.diagonal(dim1=-2, dim2=-1).sum(-1)
+        return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1, 1)))

@@ -1,0 +1,109 @@
+"""The posture fit's rotation steps: rigid_fit (Kabsch) and fit_part_rotations (each part's
+frame from what images show of it, the twist from the reference)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from kornia.geometry.conversions import quaternion_to_rotation_matrix
+
+from motion.body.fit import fit_part_rotations, rigid_fit
+from pgm.rotations import qangle, qexp, qmul
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def posed(walk):
+    """The walk's spec and its part poses at three frames."""
+    skeleton, model, fk, spec = walk
+    frames = [10, 70, 130]
+    sub = type(fk)(fk.positions[frames], fk.rotations[frames])
+    return spec, spec.poses(model, skeleton, sub)
+
+
+def _random_rotations(n: int, g: torch.Generator) -> torch.Tensor:
+    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=F64), dim=-1)
+    return quaternion_to_rotation_matrix(q)
+
+
+def test_rigid_fit_recovers_a_known_transform_and_is_least_squares():
+    """Noise-free points come back exactly; with noise, the fit's residual is no larger
+    than that of the true transform or of any nearby rotation (it is the minimum)."""
+    g = torch.Generator().manual_seed(0)
+    r = _random_rotations(4, g)
+    t = torch.randn(4, 3, generator=g, dtype=F64)
+    src = torch.randn(4, 20, 3, generator=g, dtype=F64)
+    dst = (r[:, None] @ src[..., None]).squeeze(-1) + t[:, None]
+    r_hat, t_hat = rigid_fit(src, dst)
+    torch.testing.assert_close(r_hat, r, atol=1e-10, rtol=0)
+    torch.testing.assert_close(t_hat, t, atol=1e-10, rtol=0)
+    noisy = dst + 0.05 * torch.randn(dst.shape, generator=g, dtype=F64)
+    r_hat, t_hat = rigid_fit(src, noisy)
+    assert torch.allclose(torch.det(r_hat), torch.ones(4, dtype=F64))
+
+    def residual(rot, tr):
+        return (
+            ((rot[:, None] @ src[..., None]).squeeze(-1) + tr[:, None] - noisy).square().sum((1, 2))
+        )
+
+    best = residual(r_hat, t_hat)
+    assert (best <= residual(r, t) + 1e-12).all()
+    for _ in range(20):  # small turns about random axes never do better
+        w = 0.02 * torch.randn(4, 3, generator=g, dtype=F64)
+        turn = quaternion_to_rotation_matrix(qexp(w))
+        # the best translation for the turned rotation: through the centroids
+        rot = turn @ r_hat
+        tr = noisy.mean(1) - (rot @ src.mean(1)[..., None]).squeeze(-1)
+        assert (best <= residual(rot, tr) + 1e-12).all()
+    with pytest.raises(ValueError, match="same shape"):
+        rigid_fit(src, noisy[:, :5])
+
+
+def test_part_rotations_round_trip_and_twist_comes_from_the_reference(posed):
+    """On a posture of the model every capsule comes back where it was: to 0.1 mm for single
+    bones (the reference pull's weight against theirs), within what the spec's chains bend (pelvis, torso: BodySpec.rigidity, ~1 cm of
+    their children's joints) for the others. Turning every part about its own capsule axis
+    -- what no silhouette shows -- changes nothing: the children's joints, or for a limb
+    whose only child sits on its axis the reference, decide the twist."""
+    spec, poses = posed
+    fitted = fit_part_rotations(spec, poses, poses)
+    torch.testing.assert_close(fitted[..., :3], poses[..., :3])
+    moved = (spec.landmarks(fitted) - spec.landmarks(poses)).norm(dim=-1).amax((0, 2))
+    single = spec.rigidity < 1e-9
+    assert float(moved[single].max()) < 1e-4, moved  # the pull's 1e-4 m^2 vs a limb's ~0.1
+    assert float(moved.max()) < 0.015, moved
+    axis = torch.nn.functional.normalize(spec.shapes.axis, dim=-1)  # (P, 3) in part frames
+    g = torch.Generator().manual_seed(1)
+    angle = (torch.rand(3, spec.num_parts, generator=g, dtype=F64) - 0.5) * math.radians(80)
+    twist = qexp(angle[..., None] * axis)  # about each part's own axis
+    twisted = torch.cat([poses[..., :3], qmul(poses[..., 3:], twist)], -1)
+    err = torch.rad2deg(qangle(fit_part_rotations(spec, twisted, poses)[..., 3:], fitted[..., 3:]))
+    assert float(err.max()) < 0.5, err
+
+
+def test_part_rotations_follow_a_real_swing_and_a_given_root(posed):
+    """A forearm swung by 25 degrees (its hand carried along) is followed: its far landmark
+    lands where the swung one is, to 1 mm; and a given root rotation is used as it is."""
+    spec, poses = posed
+    p = spec.part_names.index("forearm_l")
+    axis = torch.nn.functional.normalize(spec.shapes.axis[p], dim=0)
+    side = torch.linalg.cross(axis, torch.tensor([0.0, 0, 1], dtype=F64))
+    swing = qexp(math.radians(25) * torch.nn.functional.normalize(side, dim=0))
+    moved = poses.clone()
+    moved[:, p, 3:] = qmul(poses[:, p, 3:], swing.expand(poses.shape[0], 4))
+    for child in (spec.parents == p).nonzero().flatten().tolist():  # the hand moves along
+        moved[:, child, :3] = spec.landmarks(moved)[:, p, 1]
+    fitted = fit_part_rotations(spec, moved, poses)
+    far = (spec.landmarks(fitted)[:, p, 1] - spec.landmarks(moved)[:, p, 1]).norm(dim=-1)
+    assert float(far.max()) < 1e-3, far
+    root = int((spec.parents < 0).nonzero()[0])
+    turn = torch.tensor([0.0, 0.3, 0.0], dtype=F64)
+    given = quaternion_to_rotation_matrix(qexp(turn)).expand(3, 3, 3)
+    fitted = fit_part_rotations(spec, poses, poses, root_rotation=given)
+    got = quaternion_to_rotation_matrix(fitted[:, root, 3:].contiguous())
+    torch.testing.assert_close(got, given, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="must have shape"):
+        fit_part_rotations(spec, poses[..., :3], poses)
