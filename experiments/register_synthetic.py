@@ -13,7 +13,8 @@ Metrics: ``c_err_mean`` and ``c_err_mean_stage1`` (reference frames, after refin
 after stage 1), ``t_rot_err_deg_mean`` (root rotation), ``t_pos_err_mean`` (root position,
 fraction of height), ``a_err_deg_mean`` (articulation error over the joints the body parts
 drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of height),
-``silhouette_iou_mean``; ``sec_per_video_frame`` and per stage in timings.json.
+``silhouette_iou_mean``; ``a_swing_err_deg_mean`` is the articulation error without the
+twist about each bone (what a capsule body can show); ``sec_per_video_frame`` and per stage in timings.json.
 """
 
 from __future__ import annotations
@@ -135,6 +136,27 @@ def _angle_deg(a: Tensor, b: Tensor) -> Tensor:
     return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1, 1)))
 
 
+def _bone_directions(reference: Reference, joints: list[int]) -> Tensor:
+    """``(J', 3)`` unit direction of each joint's bone in its own frame: the mean offset of
+    its children (what a capsule shows of the joint's rotation)."""
+    offsets, parents = reference.skeleton.offsets, reference.skeleton.parents
+    out = []
+    for j in joints:
+        children = (parents == j).nonzero().flatten()
+        d = offsets[children].mean(0) if len(children) else offsets[j]
+        out.append(torch.nn.functional.normalize(d, dim=0))
+    return torch.stack(out)
+
+
+def _swing_error_deg(a_true: Tensor, a_est: Tensor, directions: Tensor) -> Tensor:
+    """The articulation error a capsule can show: the angle between the bone directions
+    ``(J', 3)`` turned by the true and the estimated A ``(T', J', 3, 3)`` (its twist about
+    the bone left out). ``(T', J')`` degrees."""
+    u = (a_true @ directions[..., None]).squeeze(-1)
+    v = (a_est @ directions[..., None]).squeeze(-1)
+    return torch.rad2deg(torch.acos((u * v).sum(-1).clamp(-1, 1)))
+
+
 def _student_joints(reference: Reference, rotations: Tensor, root: Tensor, scale: float):
     offsets = reference.skeleton.offsets.to(rotations) * scale
     zero = torch.zeros(rotations.shape[0], 3, dtype=rotations.dtype)
@@ -185,6 +207,9 @@ def run(cfg: RegisterSyntheticConfig):
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     a_true = reference.rotations[truth.C].transpose(-1, -2) @ truth.local
     a_err = _angle_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
+    swing = _swing_error_deg(
+        a_true[:, driven], result.A[:, driven], _bone_directions(reference, driven)
+    )
     t_rot = _angle_deg(truth.rotation, result.T_rotation)
     t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
     joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
@@ -197,6 +222,7 @@ def run(cfg: RegisterSyntheticConfig):
         "t_rot_err_deg_mean": float(t_rot.mean()),
         "t_pos_err_mean": float(t_pos.mean()),
         "a_err_deg_mean": float(a_err.mean()),
+        "a_swing_err_deg_mean": float(swing.mean()),
         "e3d_mean": float(e3d.mean()),
         "silhouette_iou_mean": float(result.fit.mean()),
         "G": float(result.G),

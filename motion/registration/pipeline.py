@@ -17,17 +17,20 @@ times them and assembles the result. Deterministic under ``settings.seed``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from motion.body.observation import PartShapes, body_layers
 from motion.cameras import CameraRig
 from motion.registration.approximate import (
+    Stage1Result,
     Stage1Settings,
     approximate_registration,
     estimate_body_scale,
@@ -73,6 +76,24 @@ def silhouette_iou(shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor) -
     inter = (covered & seen).flatten(2).sum(-1).float()
     union = (covered | seen).flatten(2).sum(-1).float().clamp_min(1)
     return (inter / union).mean(-1)
+
+
+def _fill_unseen(stage1: Stage1Result, seen: Tensor) -> Stage1Result:
+    """Stage 1's C and T on every frame from its result on the frames ``seen`` ``(T',)``
+    (where the person is in view): C interpolated linearly in time between seen frames
+    (held beyond the first and last), T from the nearest seen frame. BP then carries the
+    unseen frames on their priors and temporal edges."""
+    frames = torch.arange(len(seen), dtype=torch.float64)
+    known = seen.nonzero().flatten()
+    c = np.interp(frames.numpy(), known.double().numpy(), stage1.C.double().numpy())
+    nearest = (frames[:, None] - known[None].double()).abs().argmin(1)
+    return dataclasses.replace(
+        stage1,
+        C=torch.cummax(torch.from_numpy(c).round().long(), 0).values,
+        rotation=stage1.rotation[nearest],
+        translation=stage1.translation[nearest],
+        cost=stage1.cost[nearest],
+    )
 
 
 def register(
@@ -122,7 +143,17 @@ def register(
     timings["stage0"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    stage1 = approximate_registration(reference, video, scale, s.stage1, generator, log)
+    seen = video.seen()
+    if not bool(seen.any()):
+        raise RegistrationError(
+            f"{video.name}: the person is never seen (every silhouette is empty)"
+        )
+    stage1 = approximate_registration(
+        reference, video.cut(seen.nonzero().flatten()), scale, s.stage1, generator, log
+    )
+    if not bool(seen.all()):
+        stage1 = _fill_unseen(stage1, seen)
+        notes["unseen_frames"] = str(int((~seen).sum()))
     timings["stage1"] = time.perf_counter() - t0
     notes["stage1_pairs"] = str(stage1.pair_evaluations)
 

@@ -171,8 +171,12 @@ class VideoFeatures:
     def num_frames(self) -> int:
         return int(self.observation.silhouette.shape[1])
 
-    def cut(self, frames: slice) -> VideoFeatures:
-        """The same video restricted to ``frames`` (a slice of video frames)."""
+    def seen(self) -> Tensor:
+        """``(T',)`` bool: frames where some camera's silhouette has a pixel."""
+        return (self.observation.silhouette[0] > 0.5).flatten(1).any(1)
+
+    def cut(self, frames: slice | Tensor) -> VideoFeatures:
+        """The same video restricted to ``frames`` (a slice, or ``(N,)`` long indices)."""
         obs = self.observation
 
         def part(x):

@@ -1,0 +1,66 @@
+"""register(): the stages run in order on a short synthetic student; frames where the
+person is out of view are carried by their neighbours; a video without the person is
+refused."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from motion.body.observation import Observation
+from motion.registration import Registration, RegistrationError, RegistrationSettings, register
+from motion.registration.inputs import features_from_sequence
+from motion.registration.refine import RefineSettings
+from motion.registration.types import Reference
+from motion.synth import SynthConfig, synthesize
+from tests.motion.body.conftest import WALK
+
+QUICK = RegistrationSettings(
+    refine=RefineSettings(particles=16, iterations=2, restarts=1, band=6, rounds=1, window=12)
+)
+
+
+@pytest.fixture(scope="module")
+def short():
+    seq = synthesize(WALK, SynthConfig(fps=25, yaw_deg=20, seed=1))
+    return seq, Reference.from_bvh(WALK), features_from_sequence(seq).cut(slice(0, 40))
+
+
+def _blank(video, frames):
+    obs = video.observation
+    sil = obs.silhouette.clone()
+    sil[:, frames] = 0.0
+    return dataclasses.replace(
+        video, observation=Observation(sil, obs.edge_distance, obs.image, obs.keypoints)
+    )
+
+
+def test_register_returns_every_frame_and_carries_unseen_ones(short):
+    """Frames 10-12 blanked (the person out of view): every frame still gets C, T and A of
+    the right shapes, C is monotone and the blanked frames' C lies between their
+    neighbours'; the result says how many frames were unseen."""
+    seq, ref, video = short
+    result = register(ref, _blank(video, slice(10, 13)), settings=QUICK)
+    assert isinstance(result, Registration)
+    n, j = video.num_frames, ref.skeleton.num_joints
+    assert result.C.shape == (n,) and result.A.shape == (n, j, 3, 3)
+    assert result.T_rotation.shape == (n, 3, 3) and result.T_translation.shape == (n, 3)
+    assert bool((result.C[1:] >= result.C[:-1]).all())
+    assert result.C_stage1[9] <= result.C_stage1[11] <= result.C_stage1[13]
+    assert result.notes["unseen_frames"] == "3"
+    eye = torch.eye(3, dtype=result.A.dtype)
+    torch.testing.assert_close(result.A[:, 0], eye.expand(n, 3, 3))
+    assert {"stage0", "stage1", "stages23"} <= set(result.timings)
+    assert 0 <= float(result.fit.min()) and float(result.fit.mean()) > 0.5
+    c_true = torch.from_numpy(seq.arrays["C_true"][:n])
+    assert float((result.C - c_true).abs().float().mean()) < 12  # stage 1 alone: ~5
+
+
+def test_a_video_without_the_person_is_refused(short):
+    _, ref, video = short
+    with pytest.raises(RegistrationError, match="never seen"):
+        register(ref, _blank(video, slice(None)), settings=QUICK)
+    with pytest.raises(RegistrationError, match="at least 2 video frames"):
+        register(ref, video.cut(slice(0, 1)), settings=QUICK)
