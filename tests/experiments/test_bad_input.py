@@ -27,7 +27,7 @@ from tests.conftest import assert_message, cli_error_line
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "experiments" / "configs"
 SCHEMAS = {k: v.schema for k, v in EXPERIMENTS.items()}
-KNOWN = "'nbp_ablation', 'nbp_noise_sweep', 'nbp_single_image', 'pose2sim_real', 'stick_pose', 'stick_time'"
+KNOWN = ", ".join(repr(name) for name in sorted(EXPERIMENTS))  # as the error lists them
 METHODS = "'dtw', 'chain', 'robust', 'c2f', 'c2f_robust'"
 ST_KEYS = ", ".join(f.name for f in dataclasses.fields(StickTimeConfig))
 ST = "experiment: stick_time\n"
