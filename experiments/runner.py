@@ -40,6 +40,7 @@ from experiments import (
     nbp_noise_sweep,
     nbp_single_image,
     pose2sim_real,
+    register_long,
     register_synthetic,
     stick_pose,
     stick_time,
@@ -112,6 +113,12 @@ EXPERIMENTS = {
         register_synthetic.run,
         register_synthetic.plot,
         register_synthetic.TIMINGS,
+    ),
+    "register_long": Experiment(
+        register_long.RegisterLongConfig,
+        register_long.run,
+        register_long.plot,
+        register_long.TIMINGS,
     ),
 }
 

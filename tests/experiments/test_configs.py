@@ -48,6 +48,7 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "a_err_deg_mean",
         "e3d_mean",
     ],
+    "register_long": ["c_err_mean", "c_err_mean_stage1", "a_err_deg_mean"],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
@@ -57,6 +58,7 @@ TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "nbp_noise_sweep": ["sec_per_frame"],
     "nbp_ablation": ["sec_per_frame_full"],
     "register_synthetic": ["sec_per_video_frame"],
+    "register_long": ["sec_stage1", "sec_total", "peak_rss_mb"],
 }
 
 
