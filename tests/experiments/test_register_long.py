@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from experiments.register_long import chain_walk, heading
+from experiments.register_long import chain_walk, heading, loop_phase_error
 from experiments.runner import run_config
 from experiments.stick_time import BUNDLED
 from motion.bvh import read_bvh, write_bvh
@@ -68,14 +68,21 @@ def test_tiny_config_runs_and_writes_its_metrics(tmp_path):
     metrics = run_config(CONFIG, {"tiny": True, "out_dir": str(tmp_path)})
     accuracy = json.loads((tmp_path / "metrics.json").read_text())
     timings = json.loads((tmp_path / "timings.json").read_text())
-    for key in ("c_err_mean", "a_err_deg_mean", "c_err_mean_stage1", "t_rot_err_deg_mean"):
+    for key in ("c_err_mean", "a_err_deg_mean", "c_err_mean_stage1", "c_phase_err_mean"):
         assert math.isfinite(accuracy[key]) and accuracy[key] >= 0, key
     for key in ("sec_stage1", "sec_total", "peak_rss_mb"):
         assert timings[key] > 0 and key not in accuracy, key
     assert timings["sec_stage1"] <= timings["sec_total"]
+    assert accuracy["c_phase_err_mean"] <= accuracy["c_err_mean"]
     assert {**accuracy, **timings} == metrics
     with open(tmp_path / "per_frame.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == accuracy["num_video_frames"]
     assert {"c_true", "c", "c_err", "c_stage1"} <= set(rows[0])
     assert (tmp_path / "plot.png").stat().st_size > 0
+
+
+def test_loop_phase_error_folds_whole_loops_away():
+    error = torch.tensor([0, 3, -3, 261, 264, -258, 130, 131, -131, 5 * 261 + 7])
+    expected = [0, 3, 3, 0, 3, 3, 130, 130, 130, 7]
+    assert loop_phase_error(error, 261).tolist() == pytest.approx(expected)
