@@ -6,6 +6,11 @@
       write a synthetic sequence with its ground truth, e.g.
       fps=30 cameras=2 noise_px=2 replace=0.4,0.5 articulation=LeftLeg:20,RightArm:30
       size=320x240 videos=true seed=1  (python -m motion synth --help lists every setting)
+  python -m motion register --reference REF.bvh --video V1.mp4 [--video V2.mp4 ...]
+          [--calibration CAMS.toml] [--config SETTINGS.yaml] [--person X,Y] --out DIR [key=value ...]
+      register the reference motion to the video(s): C, T and A per video frame, and a report
+  python -m motion demo [--out DIR]
+      the main job on bundled data: a synthetic video of one walker registered against another
 
 Bad input prints one line, "error: ...", to stderr and exits with status 2; --debug shows
 the traceback as well.
@@ -22,6 +27,12 @@ from motion.bodyparts import BodyModel, BodyPartMappingError
 from motion.bvh import read_bvh
 from motion.cli import Parser, add_debug, run
 from motion.kinematics import Skeleton
+from motion.registration.cli import (
+    add_demo_parser,
+    add_register_parser,
+    demo_command,
+    register_command,
+)
 from motion.settings import describe
 from motion.synth import SynthConfig, save_sequence, sequence_files, synthesize
 
@@ -87,7 +98,9 @@ def _synth_epilog() -> str:
 def _parser() -> Parser:
     parser = Parser(prog="python -m motion", description=__doc__)
     add_debug(parser)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,synth}")
+    sub = parser.add_subparsers(
+        dest="command", required=True, metavar="{info,synth,register,demo}"
+    )
     p_info = sub.add_parser(
         "info",
         help="describe a BVH file: skeleton, rate, units, body parts",
@@ -123,10 +136,16 @@ def _parser() -> Parser:
     p_synth.add_argument(
         "overrides", nargs="*", default=[], help="key=value settings (listed below)"
     )
+    add_register_parser(sub)
+    add_demo_parser(sub)
     return parser
 
 
 def _command(args: argparse.Namespace) -> int:
+    if args.command == "register":
+        return register_command(args)
+    if args.command == "demo":
+        return demo_command(args)
     if args.command == "info":
         print(info(args.file, args.spec))
         return 0

@@ -9,6 +9,7 @@ right and ``v`` down, origin at the top-left pixel's centre as OpenCV. Distortio
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ __all__ = [
     "decompose_projection",
     "dlt",
     "load_pose2sim_calibration",
+    "save_pose2sim_calibration",
 ]
 
 
@@ -264,6 +266,100 @@ def load_pose2sim_calibration(path: str | Path) -> CameraRig:
         torch.stack(sizes),
         list(names),
     )
+
+
+def _toml_string(text: str) -> str:
+    """A TOML basic string: JSON's escapes are TOML's (``\\"``, ``\\\\``, ``\\n``, ``\\uXXXX``);
+    DEL, which JSON leaves as is and TOML forbids raw, is escaped too."""
+    return json.dumps(text, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
+def _toml_key(text: str) -> str:
+    """A table name: bare (``cam_01``, as Pose2Sim writes) when TOML allows, else quoted."""
+    bare = text and all(ch.isascii() and (ch.isalnum() or ch in "_-") for ch in text)
+    return text if bare else _toml_string(text)
+
+
+def _toml_numbers(values) -> str:
+    """Nested lists of floats as TOML arrays; ``repr`` is the shortest text that reads back to
+    the same double."""
+    if isinstance(values, list):
+        return "[" + ", ".join(_toml_numbers(v) for v in values) + "]"
+    return repr(float(values))
+
+
+def _rodrigues(r: Tensor) -> Tensor:
+    """Rotation matrix ``(3, 3)`` float64 -> Rodrigues vector ``(3,)``: axis times angle in
+    [0, pi]. Near pi (where the antisymmetric part vanishes) the axis comes from the symmetric
+    part ``(R + I) / 2 = a a^T``, its sign fixed by the small antisymmetric remainder."""
+    skew = torch.stack([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2
+    sin = skew.norm()
+    cos = ((torch.trace(r) - 1) / 2).clamp(-1.0, 1.0)
+    angle = torch.atan2(sin, cos)
+    if cos > -0.9:  # well away from pi: the antisymmetric part is reliable
+        if sin < 1e-300:
+            return torch.zeros(3, dtype=r.dtype)
+        return skew * (angle / sin)
+    sym = (r + r.T) / 2 - cos * torch.eye(3, dtype=r.dtype)  # (1 - cos) a a^T
+    col = int(torch.argmax(torch.diagonal(sym)))
+    axis = sym[:, col] / sym[col, col].clamp_min(1e-300).sqrt()
+    axis = axis / axis.norm()
+    if torch.dot(axis, skew) < 0:
+        axis = -axis
+    return axis * angle
+
+
+def save_pose2sim_calibration(rig: CameraRig, path: str | Path) -> Path:
+    """Write ``rig`` as a Pose2Sim calibration TOML, the format
+    :func:`load_pose2sim_calibration` reads: one ``[name]`` table per camera with ``name``,
+    ``size`` (width, height px), ``matrix`` (K), ``distortions`` (OpenCV's k1 k2 p1 p2 k3),
+    ``rotation`` (Rodrigues vector of world-to-camera R), ``translation`` (t, metres),
+    ``fisheye = false``; then ``[metadata]`` (``adjusted = false``, ``error = 0.0``) as Pose2Sim
+    writes it. Numbers are written in full double precision (read back exactly; rotations to
+    ~1e-15 through the Rodrigues vector).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ValueError: an orthographic rig (the format is pinhole only), camera names that are
+            repeated or named ``metadata`` (each names a table), or non-finite values.
+    """
+    path = Path(path)
+    if rig.orthographic:
+        raise ValueError(
+            f"{path}: a Pose2Sim calibration holds pinhole cameras; got an orthographic rig"
+        )
+    names = [str(n) for n in rig.names]
+    if len(names) != rig.num_cameras:
+        raise ValueError(f"{path}: {rig.num_cameras} cameras but {len(names)} names")
+    if len(set(names)) != len(names) or "metadata" in names:
+        raise ValueError(
+            f"{path}: camera names must be distinct and not 'metadata' (each names a table); "
+            f"got {names}"
+        )
+    values = {
+        n: getattr(rig, n).detach().cpu().to(torch.float64) for n in ("K", "R", "t", "dist", "size")
+    }
+    for key, value in values.items():
+        if not torch.isfinite(value).all():
+            raise ValueError(f"{path}: rig.{key} must be finite; got {value.tolist()}")
+    lines: list[str] = []
+    for c, name in enumerate(names):
+        lines += [
+            f"[{_toml_key(name)}]",
+            f"name = {_toml_string(name)}",
+            f"size = {_toml_numbers(values['size'][c].tolist())}",
+            f"matrix = {_toml_numbers(values['K'][c].tolist())}",
+            f"distortions = {_toml_numbers(values['dist'][c].tolist())}",
+            f"rotation = {_toml_numbers(_rodrigues(values['R'][c]).tolist())}",
+            f"translation = {_toml_numbers(values['t'][c].tolist())}",
+            "fisheye = false",
+            "",
+        ]
+    lines += ["[metadata]", "adjusted = false", "error = 0.0", ""]
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path
 
 
 def _normaliser(points: Tensor) -> Tensor:

@@ -9,7 +9,9 @@ input can be replaced by later frames (the proposal's failure case), and another
 the student (then C has no ground truth).
 
 Saved as ``sequence.npz`` (arrays) + ``sequence.json`` (config, shapes, units, camera
-parameters). Units: metres, radians inside; the stored articulation A is in degrees.
+parameters); with ``videos=true`` also one ``.avi`` per camera and the cameras as a Pose2Sim
+``calibration.toml``, so that the folder is a complete input to ``motion register``.
+Units: metres, radians inside; the stored articulation A is in degrees.
 """
 
 from __future__ import annotations
@@ -21,12 +23,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import cv2
 import numpy as np
 import torch
 
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
-from motion.cameras import CameraRig
+from motion.cameras import CameraRig, save_pose2sim_calibration
 from motion.draw import PART_COLOURS, write_video
 from motion.features import edges
 from motion.kinematics import (
@@ -40,6 +43,9 @@ from motion.render import ProjectedParts, label_map, project_parts
 from motion.settings import SettingError, Settings, echo, from_text, setting, show
 
 __all__ = [
+    "BACKGROUND_RGB",
+    "BACKGROUND_SUFFIX",
+    "CALIBRATION_FILE",
     "Sequence",
     "SynthConfig",
     "SynthConfigError",
@@ -49,6 +55,13 @@ __all__ = [
     "synthesize",
     "time_warp",
 ]
+
+
+#: the scene's colour behind the body (RGB in [0, 1])
+BACKGROUND_RGB = (0.85, 0.85, 0.8)
+#: with the videos, each camera's empty scene (a clean plate, as one films before the person
+#: walks in) is written as ``<camera><BACKGROUND_SUFFIX>``
+BACKGROUND_SUFFIX = "_background.png"
 
 
 class SynthConfigError(SettingError):
@@ -330,7 +343,7 @@ def synthesize(
         labels[:, sl] = lab.transpose(0, 1).to(torch.int8)
     sil = labels >= 0
     shade = torch.from_numpy(PART_COLOURS.astype(np.float32) / 255.0)
-    bg = torch.tensor([0.85, 0.85, 0.8])
+    bg = torch.tensor(BACKGROUND_RGB)
     table = torch.cat([bg[None], shade])
     frames = table[(labels.long() + 1)]  # (C, T', H, W, 3)
     grey = frames.mean(-1).reshape(-1, 1, h, w)
@@ -418,25 +431,53 @@ def _check_in_front(depth: torch.Tensor, joints: list[str], cameras: list[str], 
     )
 
 
+#: the cameras of a sequence written with its videos (Pose2Sim TOML, see
+#: :func:`motion.cameras.save_pose2sim_calibration`)
+CALIBRATION_FILE = "calibration.toml"
+
+
 def sequence_files(meta: dict, out_dir: str | Path) -> list[Path]:
     """The files :func:`save_sequence` writes for a sequence with metadata ``meta``."""
     out = Path(out_dir)
     files = [out / "sequence.npz", out / "sequence.json"]
     if meta["config"]["videos"]:
         files += [out / f"{name}.avi" for name in meta["cameras"]]
+        files += [out / f"{name}{BACKGROUND_SUFFIX}" for name in meta["cameras"]]
+        files.append(out / CALIBRATION_FILE)
     return files
 
 
+def _sequence_rig(seq: Sequence) -> CameraRig:
+    """The rig the sequence was rendered with (float64), from its ``K``, ``R``, ``t``."""
+    k = torch.from_numpy(seq.arrays["K"]).to(torch.float64)
+    c = k.shape[0]
+    w, h = seq.meta["config"]["size"]
+    return CameraRig(
+        k,
+        torch.from_numpy(seq.arrays["R"]).to(torch.float64),
+        torch.from_numpy(seq.arrays["t"]).to(torch.float64),
+        torch.zeros(c, 5, dtype=torch.float64),
+        torch.tensor([[w, h]] * c, dtype=torch.float64),
+        list(seq.meta["cameras"]),
+    )
+
+
 def save_sequence(seq: Sequence, out_dir: str | Path) -> Path:
-    """Write ``sequence.npz`` + ``sequence.json`` (and one ``.avi`` per camera if configured)
-    into ``out_dir`` (:func:`sequence_files` lists them); returns ``out_dir``."""
+    """Write ``sequence.npz`` + ``sequence.json`` (and, if configured, one ``.avi`` per camera
+    and the cameras as :data:`CALIBRATION_FILE`) into ``out_dir`` (:func:`sequence_files`
+    lists them); returns ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / "sequence.npz", **seq.arrays)
     (out / "sequence.json").write_text(json.dumps(seq.meta, indent=2))
     if seq.meta["config"]["videos"]:
+        plate = cv2.cvtColor(np.ascontiguousarray(seq.arrays["frames"][0, 0]), cv2.COLOR_RGB2BGR)
+        plate[...] = np.round(np.array(BACKGROUND_RGB[::-1]) * 255).astype(np.uint8)
         for c, name in enumerate(seq.meta["cameras"]):
             write_video(out / f"{name}.avi", seq.arrays["frames"][c], seq.meta["video_rate_hz"])
+            if not cv2.imwrite(str(out / f"{name}{BACKGROUND_SUFFIX}"), plate):
+                raise OSError(f"{out / (name + BACKGROUND_SUFFIX)}: OpenCV cannot write it")
+        save_pose2sim_calibration(_sequence_rig(seq), out / CALIBRATION_FILE)
     return out
 
 

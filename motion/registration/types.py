@@ -97,11 +97,17 @@ class Reference:
                 f"reference frames must be in [0, {self.num_frames}); got "
                 f"{int(frames.min())}..{int(frames.max())}"
             )
-        rot = self.rotations[frames].clone()
+        return self.posture_frames(self.rotations[frames], scale)
+
+    def posture_frames(self, rotations: Tensor, scale: float | Tensor = 1.0) -> FKResult:
+        """Like :meth:`body_frames` for any local joint ``rotations`` ``(*S, J, 3, 3)`` on
+        this skeleton (e.g. a registered student's): the root's rotation is ignored (taken
+        as the identity) and the root joint put at the origin."""
+        rot = rotations.to(torch.float64).clone()
         rot[..., 0, :, :] = torch.eye(3, dtype=rot.dtype)
         offsets = self.skeleton.offsets.to(rot).clone()
         offsets[0] = 0.0  # the root joint sits at the origin
-        zero = torch.zeros(*frames.shape, 3, dtype=rot.dtype)
+        zero = torch.zeros(*rot.shape[:-3], 3, dtype=rot.dtype)
         fk = forward_kinematics(self.skeleton, rot, zero, offsets)
         # the root is at the origin, so scaling every position scales every bone
         return FKResult(fk.positions * scale, fk.rotations)
@@ -110,6 +116,12 @@ class Reference:
         """Part poses of ``B_t`` (:meth:`body_frames`): ``(*S, P, 7)`` float64 in the root's
         frame (proximal landmark in metres, frame quaternion ``w`` first)."""
         poses = self.spec.poses(self.model, self.skeleton, self.body_frames(frames))
+        return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
+
+    def posture_poses(self, rotations: Tensor, scale: float | Tensor = 1.0) -> Tensor:
+        """Part poses of :meth:`posture_frames` ``(rotations)``: ``(*S, P, 7)`` float64 in
+        the root's frame, as :meth:`body_poses`."""
+        poses = self.spec.poses(self.model, self.skeleton, self.posture_frames(rotations))
         return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
 
 

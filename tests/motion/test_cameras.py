@@ -1,5 +1,6 @@
 """Cameras against OpenCV, DLT recovery, and the shipped pose2sim calibration."""
 
+import dataclasses
 import math
 
 import cv2
@@ -14,6 +15,7 @@ from motion.cameras import (
     decompose_projection,
     dlt,
     load_pose2sim_calibration,
+    save_pose2sim_calibration,
 )
 from motion.keypoints import BODY_25B, read_openpose_folder, read_trc
 from tests.conftest import SHARED_DATA, requires_shared_data
@@ -132,3 +134,49 @@ def test_pose2sim_calibration_reprojects_the_triangulated_keypoints():
     assert len(err) > 4000
     assert np.median(err) < 15.0, np.median(err)
     assert math.isfinite(float(np.percentile(err, 90)))
+
+
+def _assert_rigs_close(a: CameraRig, b: CameraRig, rtol=1e-9):
+    assert a.names == b.names and a.orthographic == b.orthographic
+    for key in ("K", "R", "t", "dist", "size"):
+        x, y = getattr(a, key).to(F64), getattr(b, key).to(F64)
+        assert x.shape == y.shape, key
+        # relative to each array's scale (R entries near 0 have no relative precision)
+        assert (x - y).abs().max() <= rtol * max(1.0, float(x.abs().max())), key
+
+
+def test_saved_calibration_reads_back_as_the_same_rig(tmp_path):
+    """rig -> Pose2Sim TOML -> rig: equal within 1e-9 relative, including rotations near a half
+    turn and the identity (where the Rodrigues vector is delicate) and awkward camera names."""
+    rig, _ = _random_rig(c=5, seed=4)
+    half_turn = axis_angle_to_rotation_matrix(
+        torch.tensor([[0.0, math.pi - 1e-9, 0.0], [0.6 * math.pi, 0.0, -0.8 * math.pi]], dtype=F64)
+    )
+    rig.R[0], rig.R[1], rig.R[2] = half_turn[0], half_turn[1], torch.eye(3, dtype=F64)
+    rig.names = ["cam 01", 'q"uote', "back\\slash", "tab\there", "é"]
+    path = save_pose2sim_calibration(rig, tmp_path / "calib.toml")
+    assert path == tmp_path / "calib.toml"
+    _assert_rigs_close(load_pose2sim_calibration(path), rig)
+    text = path.read_text()
+    assert text.count("fisheye = false") == 5 and "[metadata]" in text
+
+
+@requires_shared_data()
+@pytest.mark.shared_data
+def test_the_shipped_calibration_survives_a_save_and_load(tmp_path):
+    rig = load_pose2sim_calibration(CALIB)
+    back = load_pose2sim_calibration(save_pose2sim_calibration(rig, tmp_path / "c.toml"))
+    _assert_rigs_close(back, rig)
+
+
+def test_saving_a_calibration_refuses_what_the_format_cannot_hold(tmp_path):
+    rig, _ = _random_rig(c=2)
+    with pytest.raises(ValueError, match="distinct and not 'metadata'"):
+        save_pose2sim_calibration(dataclasses.replace(rig, names=["a", "a"]), tmp_path / "x.toml")
+    with pytest.raises(ValueError, match="orthographic"):
+        save_pose2sim_calibration(dataclasses.replace(rig, orthographic=True), tmp_path / "x.toml")
+    bad = dataclasses.replace(rig, t=rig.t.clone())
+    bad.t[1, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"rig\.t must be finite"):
+        save_pose2sim_calibration(bad, tmp_path / "x.toml")
+    assert not (tmp_path / "x.toml").exists()

@@ -165,12 +165,12 @@ FILE_CASES = [
 USAGE_CASES = [
     (
         [],
-        "python -m motion: the following arguments are required: {info,synth} "
+        "python -m motion: the following arguments are required: {info,synth,register,demo} "
         "(see python -m motion --help)",
     ),
     (
         ["bogus"],
-        r"re:python -m motion: argument \{info,synth\}: invalid choice: 'bogus' .*"
+        r"re:python -m motion: argument \{info,synth,register,demo\}: invalid choice: 'bogus' .*"
         r"\(see python -m motion --help\)",
     ),
     (
@@ -261,7 +261,9 @@ def test_synth_says_what_it_wrote(tmp_path, capsys):
     out = tmp_path / "seq"
     argv = ["synth", "--reference", B, "--out", str(out)]
     assert main([*argv, "size=16x12", "focal_px=30", "fps=5", "cameras=2", "videos=true"]) == 0
-    files = [out / n for n in ("sequence.npz", "sequence.json", "cam1.avi", "cam2.avi")]
+    names = ("sequence.npz", "sequence.json", "cam1.avi", "cam2.avi")
+    names += ("cam1_background.png", "cam2_background.png", "calibration.toml")
+    files = [out / n for n in names]
     assert capsys.readouterr().out == (
         f"wrote 15 frames from 2 camera(s): {', '.join(str(f) for f in files)}\n"
     )

@@ -125,3 +125,25 @@ def test_cli_synth_and_its_errors(tmp_path, capsys):
     assert main(["synth", "--reference", str(BUNDLED), "--out", str(out), "warp=1.5"]) == 2
     assert "warp must be in [0, 1)" in capsys.readouterr().err
     assert main(["synth", "--reference", str(tmp_path / "none.bvh"), "--out", str(out)]) == 2
+
+
+def test_a_sequence_with_videos_carries_its_calibration(tmp_path):
+    """videos=true writes the cameras beside the videos (Pose2Sim TOML, listed by
+    sequence_files), and the file reads back as the rig the sequence was rendered with."""
+    from motion.cameras import load_pose2sim_calibration
+    from motion.registration.inputs import sequence_cameras
+    from motion.synth import CALIBRATION_FILE, sequence_files
+
+    cfg = SynthConfig(cameras=2, size=[32, 24], focal_px=60, fps=5, videos=True, seed=1)
+    seq = synthesize(BUNDLED, cfg)
+    save_sequence(seq, tmp_path)
+    files = sequence_files(seq.meta, tmp_path)
+    assert files[-1] == tmp_path / CALIBRATION_FILE
+    assert all(f.is_file() for f in files)
+    back = load_pose2sim_calibration(tmp_path / CALIBRATION_FILE)
+    want = sequence_cameras(seq, torch.float64)
+    assert back.names == want.names == ["cam1", "cam2"]
+    for key in ("K", "R", "t", "dist", "size"):
+        torch.testing.assert_close(getattr(back, key), getattr(want, key), rtol=1e-9, atol=1e-12)
+    no_videos = synthesize(BUNDLED, SynthConfig(size=[32, 24], focal_px=60, fps=5))
+    assert all(f.suffix in (".npz", ".json") for f in sequence_files(no_videos.meta, tmp_path))

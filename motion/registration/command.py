@@ -1,0 +1,279 @@
+"""``python -m motion register``: videos and a reference BVH in, the registration's files out.
+
+:func:`run_register` is the whole job, in order: check the output folder can be written, read
+the settings, the reference and the calibration, turn the videos into features, check that
+they fit together (durations, cameras), register (progress bars per stage), then write every
+output into a staging folder inside ``out`` and move the files into place only when all of
+them are written -- bad input never leaves a partial result that looks like one.
+
+Outputs (:data:`OUTPUT_FILES`): ``registration.npz``, ``summary.json``, ``student.bvh``,
+``joint_angles.csv``, ``joint_angles.mot``, ``overlay_<camera>.mp4`` per camera and
+``report.html``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from motion.bodyparts import BodyPartMappingError
+from motion.cameras import CameraRig, load_pose2sim_calibration
+from motion.draw import write_video
+from motion.registration.config import RegisterConfig, load_config, settings_dict
+from motion.registration.export import (
+    TRUSTED_FIT,
+    joint_angles,
+    joints_trusted,
+    save_registration,
+    student_kinematics,
+    summarise,
+    write_joint_angles_csv,
+    write_mot,
+    write_student_bvh,
+)
+from motion.registration.pipeline import register
+from motion.registration.render import body_poses, points_in_view, side_by_side_frames
+from motion.registration.report import ReportInputs, write_report
+from motion.registration.types import Reference, Registration, RegistrationError
+from motion.registration.video import VideoInput, features_from_videos
+
+__all__ = ["OUTPUT_FILES", "RegisterJob", "RegisterOutcome", "run_register", "summary_lines"]
+
+#: what each output file is, for the report and the summary
+OUTPUT_FILES = {
+    "registration.npz": "C, T and A per video frame, fit, G (numpy arrays)",
+    "summary.json": "the numbers of the summary, per-joint differences, settings, timings",
+    "student.bvh": "the recovered motion on the reference skeleton (any BVH viewer)",
+    "joint_angles.csv": "per frame and joint: reference, student and difference angles",
+    "joint_angles.mot": "the same as an OpenSim-style motion table",
+    "report.html": "this report",
+}
+
+#: the shortest reference, relative to the video's duration, that registration accepts: the
+#: monotone C can play the reference at most this many times slower than real time
+MIN_REFERENCE_FRACTION = 0.4
+
+
+@dataclass(frozen=True)
+class RegisterJob:
+    """One ``motion register`` run.
+
+    Attributes:
+        reference: the reference BVH.
+        videos: one video per camera (synchronised).
+        out: the output folder (created).
+        calibration: a Pose2Sim-style ``calibration.toml`` (``None``: one uncalibrated camera).
+        config: a YAML file of settings (``None``: defaults).
+        overrides: ``key=value`` settings (after ``config``).
+        person: ``(x, y)`` pixels near the person to follow in the first frame.
+        backgrounds: a picture of each camera's empty scene (a clean plate), or none.
+    """
+
+    reference: Path
+    videos: list[Path]
+    out: Path
+    calibration: Path | None = None
+    config: Path | None = None
+    overrides: tuple[str, ...] = ()
+    person: tuple[float, float] | None = None
+    backgrounds: tuple[Path, ...] = ()
+
+
+@dataclass(frozen=True)
+class RegisterOutcome:
+    """What a run wrote: the result, its summary and the files (name -> path)."""
+
+    registration: Registration
+    summary: object
+    files: dict[str, Path]
+
+
+def _check_writable(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
+            pass
+    except OSError as err:
+        raise RegistrationError(
+            f"{out}: the output folder cannot be written ({err.strerror or err})"
+        ) from None
+
+
+def _read_reference(path: Path) -> Reference:
+    try:
+        return Reference.from_bvh(path)
+    except BodyPartMappingError as err:
+        raise RegistrationError(
+            f"{path}: its joints do not give every body part the body spec needs ({err}); "
+            "see motion/data/bodyparts/ for the specs, or `python -m motion info "
+            f"{path}` for its skeleton"
+        ) from None
+
+
+def _read_rig(path: Path | None) -> CameraRig | None:
+    return None if path is None else load_pose2sim_calibration(path)
+
+
+def _check_durations(reference: Reference, video: VideoInput) -> None:
+    f = video.features
+    ref_s = reference.num_frames / reference.frame_rate
+    vid_s = f.num_frames / f.frame_rate
+    if ref_s < MIN_REFERENCE_FRACTION * vid_s:
+        most = int(ref_s / MIN_REFERENCE_FRACTION * f.frame_rate)
+        raise RegistrationError(
+            f"{reference.name}: the reference lasts {ref_s:.2f} s but the video {vid_s:.2f} s: "
+            f"it can be aligned to at most about {most} of the {f.num_frames} video frames, "
+            f"and the rest would not be aligned; choose the video's stretch with "
+            f"video.start= and video.count= (e.g. video.count={most})"
+        )
+
+
+def _progress(enabled: bool) -> Callable[[Iterable, str, int], Iterator]:
+    def bar(items: Iterable, desc: str, total: int | None = None) -> Iterator:
+        return iter(tqdm(items, desc=desc, total=total, disable=not enabled, file=sys.stderr))
+
+    return bar
+
+
+def _log(enabled: bool) -> Callable[[str], None]:
+    def write(message: str) -> None:
+        if enabled:
+            tqdm.write(message, file=sys.stderr)
+
+    return write
+
+
+def _write_outputs(
+    stage: Path,
+    job: RegisterJob,
+    cfg: RegisterConfig,
+    reference: Reference,
+    video: VideoInput,
+    reg: Registration,
+    show: bool,
+):
+    rate = video.features.frame_rate
+    rig = video.features.cameras
+    angles = joint_angles(reg, reference, rate)
+    seen = points_in_view(rig, student_kinematics(reg, reference).positions)
+    trusted = joints_trusted(angles, reference, seen) & (reg.fit >= TRUSTED_FIT)[:, None]
+    summary = summarise(reg, reference, angles, rate, settings_dict(cfg), trusted=trusted)
+    files = {}
+    files["registration.npz"] = save_registration(reg, stage / "registration.npz")
+    (stage / "summary.json").write_text(summary.to_json(), encoding="utf-8")
+    files["summary.json"] = stage / "summary.json"
+    files["student.bvh"] = write_student_bvh(reg, reference, rate, stage / "student.bvh")
+    files["joint_angles.csv"] = write_joint_angles_csv(angles, stage / "joint_angles.csv")
+    files["joint_angles.mot"] = write_mot(angles, stage / "joint_angles.mot")
+    poses = body_poses(reg, reference)
+    described = dict(OUTPUT_FILES)
+    captions = [
+        (f"student {t / rate:.2f} s", f"reference {int(c) / reference.frame_rate:.2f} s")
+        for t, c in enumerate(reg.C.tolist())
+    ]
+    for c, name in enumerate(rig.names):
+        path = stage / f"overlay_{name}.mp4"
+        pictures = side_by_side_frames(video.frames[c], rig, c, poses, captions)
+        frames = list(
+            tqdm(
+                pictures,
+                desc=f"overlay {name}",
+                total=reg.num_frames,
+                disable=not show,
+                file=sys.stderr,
+            )
+        )
+        files[path.name] = write_video(path, frames, rate)
+        described[path.name] = (
+            f"camera {name}: the registered body over the video, the reference beside it"
+        )
+    inputs = ReportInputs(
+        reg,
+        summary,
+        angles,
+        poses,
+        video.frames,
+        rig,
+        [p.name for p in job.videos],
+        trusted.numpy(),
+        {described[n]: n for n in [*files, "report.html"]},
+    )
+    files["report.html"] = write_report(stage / "report.html", inputs)
+    return summary, files
+
+
+def _publish(stage: Path, out: Path, files: dict[str, Path]) -> dict[str, Path]:
+    """Move the staged files into ``out`` (each replaces an older file of the same name)."""
+    final = {}
+    for name, path in files.items():
+        target = out / name
+        os.replace(path, target)
+        final[name] = target
+    shutil.rmtree(stage, ignore_errors=True)
+    return final
+
+
+def run_register(job: RegisterJob, show_progress: bool = True) -> RegisterOutcome:
+    """Run ``motion register`` (see the module's docstring); raises a ``ValueError``
+    subclass or ``OSError`` with a one-line message on bad input, before writing anything."""
+    _check_writable(job.out)
+    cfg = load_config(job.config, list(job.overrides))
+    given = {}
+    if job.person is not None:
+        given["person"] = list(job.person)
+    if job.backgrounds:
+        given["backgrounds"] = [str(p) for p in job.backgrounds]
+    if given:
+        cfg = dataclasses.replace(cfg, video=dataclasses.replace(cfg.video, **given))
+    reference = _read_reference(job.reference)
+    rig = _read_rig(job.calibration)
+    video = features_from_videos(job.videos, rig, cfg.video)
+    _check_durations(reference, video)
+    log = _log(show_progress)
+    if video.note:
+        log(video.note)
+    reg = register(
+        reference,
+        video.features,
+        settings=cfg.registration,
+        progress=_progress(show_progress),
+        log=log,
+    )
+    if video.note:
+        reg.notes["cameras"] = video.note
+    stage = Path(tempfile.mkdtemp(dir=job.out, prefix=".partial-"))
+    try:
+        summary, files = _write_outputs(stage, job, cfg, reference, video, reg, show_progress)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return RegisterOutcome(reg, summary, _publish(stage, job.out, files))
+
+
+def summary_lines(outcome: RegisterOutcome) -> list[str]:
+    """The one-screen summary printed at the end."""
+    s = outcome.summary
+    reg = outcome.registration
+    lines = [
+        f"registered {s.num_video_frames} video frames against {Path(s.reference).name} "
+        f"({sum(reg.timings.values()):.0f} s)",
+        f"  time offset {s.time_offset_s:.2f} s, speed ratio {s.speed_ratio:.2f} "
+        "(reference seconds per video second)",
+        f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; body size G {s.G:.3f}",
+    ]
+    if s.largest_differences:
+        lines.append("  largest joint differences:")
+        lines += [f"    {d['text']}" for d in s.largest_differences[:3]]
+    out = next(iter(outcome.files.values())).parent
+    lines.append(
+        f"  wrote {len(outcome.files)} files to {out}: report {outcome.files['report.html']}"
+    )
+    return lines

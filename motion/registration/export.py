@@ -1,0 +1,910 @@
+"""What ``python -m motion register`` writes: joint angles, the student's BVH, the result.
+
+From a :class:`~motion.registration.types.Registration` and its
+:class:`~motion.registration.types.Reference`:
+
+* :func:`joint_angles` -- per joint the flexion (bend) of the reference at C(t') and of the
+  student, their signed difference and the articulation angle of A (:class:`JointAngles`);
+  :func:`per_joint_mean_abs_deg` and :func:`largest_differences` (:class:`JointDifference`,
+  with a sentence for reports); :func:`write_joint_angles_csv` and :func:`write_mot`
+  (OpenSim storage) write them;
+* :func:`student_bvh` / :func:`write_student_bvh` -- the recovered motion as a BVH on the
+  reference's skeleton (its hierarchy, channels and file units; bones scaled by G);
+* :func:`save_registration` / :func:`load_registration` -- the whole result as ``.npz``;
+* :func:`summarise` -- :class:`RegistrationSummary`, the run in one JSON record.
+
+Conventions: metres and radians inside; degrees in the angle tables and BVH files (as the
+format stores them), the BVH file's own length unit in BVH files; video time
+``t' / frame_rate`` seconds. Euler angles follow :mod:`motion.kinematics`: channels
+``Zrotation Yrotation Xrotation`` mean ``R = Rz(a) Ry(b) Rx(c)`` (intrinsic, channel order).
+Shapes: ``T'`` video frames, ``J`` skeleton joints, ``J'`` joints with a defined flexion.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
+from motion.kinematics import FKResult, Skeleton, forward_kinematics
+from motion.registration.types import Reference, Registration, RegistrationError
+
+__all__ = [
+    "CMU_JOINT_NAMES",
+    "JointAngles",
+    "JointDifference",
+    "RegistrationSummary",
+    "bvh_from_rotations",
+    "end_site_positions",
+    "joint_angles",
+    "joint_flexion",
+    "joints_trusted",
+    "largest_differences",
+    "load_registration",
+    "matrix_to_bvh_euler",
+    "per_joint_mean_abs_deg",
+    "readable_joint_name",
+    "save_registration",
+    "student_bvh",
+    "student_kinematics",
+    "summarise",
+    "trusted_angles",
+    "write_joint_angles_csv",
+    "write_mot",
+    "write_student_bvh",
+]
+
+F64 = torch.float64
+#: silhouette IoU below which a frame's posture is not trusted: the summary's largest
+#: differences leave such frames out, the report greys them (a person leaving the view, a
+#: lost limb)
+TRUSTED_FIT = 0.5
+#: seconds of the running median over a joint's difference before the largest ones are
+#: looked for (the posture estimate jitters from frame to frame by several degrees)
+SMOOTH_S = 0.2
+_AXIS = {"X": 0, "Y": 1, "Z": 2}
+
+#: Readable names of the CMU (cgspeed) skeleton's joints, for reports. A BVH joint sits at the
+#: start of the bone it names: ``LeftLeg`` (the shin) is the knee, ``LeftArm`` the shoulder.
+CMU_JOINT_NAMES: dict[str, str] = {
+    "Hips": "pelvis",
+    "LowerBack": "lower back",
+    "Spine": "middle back",
+    "Spine1": "upper back",
+    "Neck": "base of the neck",
+    "Neck1": "neck",
+    "Head": "head",
+    **{
+        f"{side}{joint}": f"{side.lower()} {name}"
+        for side in ("Left", "Right")
+        for joint, name in (
+            ("UpLeg", "hip"),
+            ("Leg", "knee"),
+            ("Foot", "ankle"),
+            ("ToeBase", "toes"),
+            ("Shoulder", "collarbone"),
+            ("Arm", "shoulder"),
+            ("ForeArm", "elbow"),
+            ("Hand", "wrist"),
+            ("FingerBase", "knuckles"),
+            ("HandIndex1", "fingers"),
+        )
+    },
+    "LHipJoint": "left side of the pelvis",
+    "RHipJoint": "right side of the pelvis",
+    "LThumb": "left thumb",
+    "RThumb": "right thumb",
+}
+
+
+def readable_joint_name(name: str) -> str:
+    """The readable name of a joint (:data:`CMU_JOINT_NAMES`), else ``name`` itself."""
+    return CMU_JOINT_NAMES.get(name, name)
+
+
+# --------------------------------------------------------------------------- flexion
+
+
+def end_site_positions(skeleton: Skeleton, fk: FKResult, scale: float = 1.0) -> Tensor:
+    """World positions of the skeleton's End Sites.
+
+    Args:
+        skeleton: the joint tree (``end_sites`` offsets in metres).
+        fk: its forward kinematics, positions ``(..., J, 3)`` metres, rotations
+            ``(..., J, 3, 3)``.
+        scale: body scale G applied to the End Site offsets (as to the bones of ``fk``).
+
+    Returns:
+        ``(..., J, 3)`` metres: row ``j`` is the End Site of joint ``j``, NaN where joint ``j``
+        has none.
+    """
+    pos = fk.positions
+    out = torch.full_like(pos, math.nan)
+    if skeleton.end_sites:
+        idx = torch.tensor(sorted(skeleton.end_sites), dtype=torch.long)
+        offs = torch.stack([skeleton.end_sites[j] for j in idx.tolist()]).to(pos) * scale
+        tips = pos[..., idx, :] + (fk.rotations[..., idx, :, :] @ offs[:, :, None]).squeeze(-1)
+        out[..., idx, :] = tips
+    return out
+
+
+def _outgoing_candidates(parents: list[int], has_end: list[bool], through: bool) -> Tensor:
+    """Per joint, the points that may end its outgoing bone, in order of preference:
+    ``(J, K)`` long indices into ``[joints, end sites]`` (``J + j`` = End Site of ``j``),
+    padded with the joint itself (a zero bone, never chosen). Children first (joints in
+    index order, then the End Site); with ``through``, then grandchildren reached through
+    children, and so on (breadth first): a zero-length child bone starts where the joint is,
+    so the first non-zero bone found from there also leaves the joint."""
+    n = len(parents)
+    kids: list[list[int]] = [[] for _ in range(n)]
+    for j, p in enumerate(parents):
+        if p >= 0:
+            kids[p].append(j)
+    rows = []
+    for j in range(n):
+        row, level = [], [j]
+        while level:
+            nxt = []
+            for node in level:
+                row.extend(kids[node])
+                if has_end[node]:
+                    row.append(n + node)
+                nxt.extend(kids[node])
+            level = nxt if through else []
+        rows.append(row)
+    width = max(1, *(len(r) for r in rows))
+    return torch.tensor([r + [j] * (width - len(r)) for j, r in enumerate(rows)], dtype=torch.long)
+
+
+def joint_flexion(
+    positions: Tensor,
+    parents: Tensor | list[int],
+    end_sites: Tensor | None = None,
+    tol: float = 1e-9,
+    through_zero_bones: bool = True,
+) -> Tensor:
+    """Per joint, the bend angle between the bone coming in and the bone going out.
+
+    The incoming bone runs from the joint's parent to the joint; the outgoing one from the
+    joint to its first child (in index order, End Site last) whose bone is non-zero. With
+    ``through_zero_bones`` a joint whose children all sit on it (zero bones, as CMU's
+    ``LeftFingerBase`` on ``LeftHand``) looks on to their children, breadth first. The angle
+    is ``atan2(|u x v|, u . v)`` between the two bone vectors: 0 = straight, 180 = folded
+    back. It ignores twist about the bones and is invariant to a global rotation, translation
+    and scale of the body.
+
+    Args:
+        positions: ``(..., J, 3)`` joint positions (any length unit), e.g.
+            :attr:`motion.kinematics.FKResult.positions`.
+        parents: ``(J,)`` parent index per joint, -1 for the root; parents before children.
+        end_sites: optional ``(..., J, 3)`` End Site positions (:func:`end_site_positions`),
+            NaN rows for joints without one; used as children where present.
+        tol: bones no longer than this (positions' unit) count as zero length.
+        through_zero_bones: look past zero-length children (see above).
+
+    Returns:
+        ``(..., J)`` degrees; NaN where the joint has no parent, a zero-length incoming bone,
+        or no non-zero outgoing bone.
+    """
+    parents = torch.as_tensor(parents, dtype=torch.long)
+    j = parents.shape[0]
+    if positions.shape[-2:] != (j, 3):
+        raise ValueError(f"positions must be (..., {j}, 3); got {tuple(positions.shape)}")
+    if end_sites is not None and end_sites.shape != positions.shape:
+        raise ValueError(
+            f"end_sites must have the shape of positions {tuple(positions.shape)}; got "
+            f"{tuple(end_sites.shape)}"
+        )
+    if end_sites is None:
+        has_end = [False] * j
+        ends = torch.full_like(positions, math.nan)
+    else:
+        ends = end_sites.to(positions)
+        has_end = torch.isfinite(ends).all(-1).reshape(-1, j).any(0).tolist()
+    cand = _outgoing_candidates(parents.tolist(), has_end, through_zero_bones)  # (J, K)
+    points = torch.cat([positions, ends], -2)  # (..., 2J, 3)
+    out_vec = points[..., cand, :] - positions[..., :, None, :]  # (..., J, K, 3)
+    length = out_vec.norm(dim=-1)
+    usable = torch.isfinite(length) & (length > tol)
+    first = usable.to(torch.uint8).argmax(-1, keepdim=True)  # first usable candidate
+    v = out_vec.gather(-2, first[..., None].expand(*first.shape, 3)).squeeze(-2)
+    has_out = usable.any(-1)
+    u = positions - positions[..., parents.clamp_min(0), :]
+    has_in = (parents >= 0) & (u.norm(dim=-1) > tol)
+    angle = torch.rad2deg(torch.atan2(torch.linalg.cross(u, v).norm(dim=-1), (u * v).sum(-1)))
+    return torch.where(has_in & has_out, angle, torch.full_like(angle, math.nan))
+
+
+@dataclass
+class JointAngles:
+    """Flexion per joint and video frame, reference at C(t') against the student.
+
+    Attributes:
+        joints: ``J'`` joint names (the BVH's): those whose flexion is defined on the
+            reference (:func:`joint_flexion`).
+        time_s: ``(T',)`` float64 video time of each frame, seconds.
+        reference_deg: ``(T', J')`` float64 the reference's flexion at C(t'), degrees.
+        student_deg: ``(T', J')`` float64 the student's flexion, degrees.
+        difference_deg: ``(T', J')`` float64 ``student - reference`` (positive: the student
+            bends more), degrees.
+        articulation_deg: ``(T', J')`` float64 the rotation angle of A at the joint
+            (:attr:`Registration.a_degrees`, twist included), degrees.
+    """
+
+    joints: list[str]
+    time_s: Tensor
+    reference_deg: Tensor
+    student_deg: Tensor
+    difference_deg: Tensor
+    articulation_deg: Tensor
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+def _check_registration(reg: Registration, reference: Reference) -> None:
+    t, j = reg.num_frames, reference.skeleton.num_joints
+    if t < 1:
+        raise RegistrationError("the registration has no video frames")
+    if reg.rotations.shape != (t, j, 3, 3) or reg.T_translation.shape != (t, 3):
+        raise RegistrationError(
+            f"registration and reference {reference.name} disagree: expected rotations "
+            f"({t}, {j}, 3, 3) and T_translation ({t}, 3); got {tuple(reg.rotations.shape)} "
+            f"and {tuple(reg.T_translation.shape)}"
+        )
+
+
+def _check_rate(frame_rate: float) -> float:
+    frame_rate = float(frame_rate)
+    if not (math.isfinite(frame_rate) and frame_rate > 0):
+        raise RegistrationError(f"frame_rate must be a positive number of Hz; got {frame_rate}")
+    return frame_rate
+
+
+def student_kinematics(reg: Registration, reference: Reference) -> FKResult:
+    """The registered student's forward kinematics in the cameras' world frame: the
+    reference's skeleton scaled by ``reg.G``, local rotations ``reg.rotations``, root joint
+    at ``reg.T_translation``. Positions ``(T', J, 3)`` metres, float64."""
+    offsets = reference.skeleton.offsets.to(F64) * float(reg.G)
+    return forward_kinematics(
+        reference.skeleton, reg.rotations.to(F64), reg.T_translation.to(F64) - offsets[0], offsets
+    )
+
+
+def joints_trusted(angles: JointAngles, reference: Reference, seen: Tensor) -> Tensor:
+    """``(T', J')`` bool for the joints of ``angles``: the joint, its parent and its
+    children are all ``seen`` ``(T', J)`` (e.g. inside every camera's image): a bend whose
+    bones leave the view is a guess."""
+    parents = reference.skeleton.parents
+    out = []
+    for name in angles.joints:
+        j = reference.skeleton.index(name)
+        near = [j, *([int(parents[j])] if parents[j] >= 0 else [])]
+        near += [k for k in range(len(parents)) if int(parents[k]) == j]
+        out.append(seen[:, near].all(1))
+    return torch.stack(out, 1)
+
+
+def joint_angles(reg: Registration, reference: Reference, frame_rate: float) -> JointAngles:
+    """Flexion of the reference at C(t') and of the student, per joint and video frame.
+
+    The reference's posture is :meth:`Reference.body_frames` at ``reg.C``; the student's is
+    the forward kinematics of ``reg.rotations`` (root rotation included) on the reference's
+    skeleton scaled by ``reg.G``, root at ``reg.T_translation``. End Sites count as children.
+
+    Args:
+        reg: the registration (``T'`` frames).
+        reference: the reference it was registered against.
+        frame_rate: the video's frames per second (for :attr:`JointAngles.time_s`).
+
+    Returns:
+        :class:`JointAngles` for the joints whose flexion is defined on the reference and
+        whose rotation the registration estimates (a body part's frame joint, the root
+        excepted: joints no part drives keep the reference's rotation, so their difference
+        would be zero by construction).
+    """
+    _check_registration(reg, reference)
+    frame_rate = _check_rate(frame_rate)
+    skel = reference.skeleton
+    g = float(reg.G)
+    ref_fk = reference.body_frames(reg.C)
+    ref = joint_flexion(ref_fk.positions, skel.parents, end_site_positions(skel, ref_fk))
+    stu_fk = student_kinematics(reg, reference)
+    stu = joint_flexion(stu_fk.positions, skel.parents, end_site_positions(skel, stu_fk, g))
+    driven = torch.zeros(skel.num_joints, dtype=torch.bool)
+    driven[reference.spec.frame_joints] = True
+    driven[0] = False  # the root's rotation is T, not a bend
+    keep = (torch.isfinite(ref).all(0) & driven).nonzero().flatten()
+    ref, stu = ref[:, keep], stu[:, keep]
+    return JointAngles(
+        joints=[skel.names[i] for i in keep.tolist()],
+        time_s=torch.arange(reg.num_frames, dtype=F64) / frame_rate,
+        reference_deg=ref,
+        student_deg=stu,
+        difference_deg=stu - ref,
+        articulation_deg=reg.a_degrees.to(F64)[:, keep],
+    )
+
+
+def per_joint_mean_abs_deg(angles: JointAngles) -> dict[str, float]:
+    """Mean ``|student - reference|`` flexion per joint over the frames, degrees (NaN frames
+    left out; NaN where a joint has none)."""
+    mean = angles.difference_deg.abs().nanmean(0)
+    return {name: float(v) for name, v in zip(angles.joints, mean.tolist(), strict=True)}
+
+
+@dataclass
+class JointDifference:
+    """Where a joint's flexion differs most from the reference.
+
+    Attributes:
+        joint: the joint's name (the BVH's).
+        mean_difference_deg: mean ``student - reference`` flexion over the run, degrees
+            (negative: the student bends less).
+        start_s: video time of the run's first frame, seconds.
+        end_s: video time of the run's last frame, seconds.
+        mean_abs_deg: mean ``|student - reference|`` over all frames (the ranking), degrees.
+    """
+
+    joint: str
+    mean_difference_deg: float
+    start_s: float
+    end_s: float
+    mean_abs_deg: float
+
+    @property
+    def text(self) -> str:
+        """One sentence, e.g. ``"Left knee flexes 18 degrees less than the reference between
+        1.20 s and 1.60 s"`` (the readable name where :data:`CMU_JOINT_NAMES` knows it)."""
+        name = readable_joint_name(self.joint)
+        name = name[:1].upper() + name[1:]
+        size = abs(self.mean_difference_deg)
+        amount = f"{size:.0f}" if size >= 1 else f"{size:.1f}"
+        unit = "degree" if amount == "1" else "degrees"
+        more = "more" if self.mean_difference_deg > 0 else "less"
+        when = (
+            f"at {self.start_s:.2f} s"
+            if self.start_s == self.end_s
+            else f"between {self.start_s:.2f} s and {self.end_s:.2f} s"
+        )
+        return f"{name} flexes {amount} {unit} {more} than the reference {when}"
+
+    def to_dict(self) -> dict:
+        """The fields and :attr:`text`, for JSON."""
+        return {**dataclasses.asdict(self), "text": self.text}
+
+
+def _longest_run(diff: np.ndarray) -> tuple[int, int] | None:
+    """``(first, last)`` frame of the longest run of consecutive frames where ``|diff|``
+    exceeds half its maximum with one sign (ties: the larger ``|mean|``, then the earlier);
+    ``None`` when ``diff`` is all zero or NaN."""
+    mag = np.abs(diff)
+    if not np.isfinite(mag).any() or np.nanmax(mag) == 0:
+        return None
+    big = np.nan_to_num(mag, nan=0.0) > np.nanmax(mag) / 2
+    key = np.where(big, np.sign(diff), 0.0)
+    edges = np.flatnonzero(np.diff(key)) + 1
+    starts = np.concatenate([[0], edges])
+    stops = np.concatenate([edges, [len(key)]])
+    best, best_rank = None, None
+    for start, stop in zip(starts.tolist(), stops.tolist(), strict=True):
+        if key[start] == 0:
+            continue
+        rank = (stop - start, abs(float(diff[start:stop].mean())))
+        if best_rank is None or rank > best_rank:
+            best, best_rank = (start, stop - 1), rank
+    return best
+
+
+def _running_median(values: np.ndarray, width: int) -> np.ndarray:
+    """Centred running median over ``width`` frames along axis 0 (NaNs ignored; shrinking
+    windows at the ends)."""
+    if width <= 1:
+        return values
+    half = width // 2
+    out = np.full_like(values, np.nan)
+    for t in range(len(values)):
+        window = values[max(0, t - half) : t + half + 1]
+        ok = np.isfinite(window).any(0)
+        out[t, ok] = np.nanmedian(window[:, ok], axis=0)
+    return out
+
+
+def trusted_angles(
+    angles: JointAngles, trusted: Tensor | None = None, smooth_s: float = SMOOTH_S
+) -> JointAngles:
+    """The angles a report should read: differences where ``trusted`` is False set to NaN
+    (``(T',)`` bool per frame, or ``(T', J')`` per frame and joint of ``angles``), then a
+    centred running median over ``smooth_s`` seconds (a frame-to-frame jitter of the
+    posture estimate is not a difference of the student's movement)."""
+    diff = angles.difference_deg.detach().cpu().numpy().copy()
+    if trusted is not None:
+        trusted = trusted.to(torch.bool).cpu()
+        trusted = trusted[:, None].expand(diff.shape) if trusted.dim() == 1 else trusted
+        diff[~trusted.numpy()] = np.nan
+    time_s = angles.time_s.cpu().numpy()
+    rate = 1.0 / float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
+    width = 2 * round(smooth_s * rate / 2) + 1
+    smooth = torch.from_numpy(_running_median(diff, width)).to(angles.difference_deg)
+    if trusted is not None:  # the median may not fill an untrusted frame from its neighbours
+        smooth[~trusted.to(torch.bool)] = float("nan")
+    return dataclasses.replace(angles, difference_deg=smooth)
+
+
+def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDifference]:
+    """The ``count`` joints whose flexion differs most from the reference, each with its
+    longest stretch of a large difference.
+
+    Joints are ranked by the mean ``|student - reference|`` over the frames
+    (:func:`per_joint_mean_abs_deg`; NaN frames left out, e.g. the untrusted ones of
+    :func:`trusted_angles`); a joint with no difference at all is left out. For each, the
+    stretch is the longest run of consecutive frames where ``|difference|`` exceeds half
+    the joint's maximum ``|difference|`` with one sign, and :attr:`JointDifference.
+    mean_difference_deg` is the signed mean over it.
+
+    Returns:
+        up to ``count`` :class:`JointDifference`, largest first.
+    """
+    if count < 0:
+        raise ValueError(f"count must be >= 0; got {count}")
+    mean_abs = per_joint_mean_abs_deg(angles)
+    order = sorted(
+        (i for i, n in enumerate(angles.joints) if math.isfinite(mean_abs[n])),
+        key=lambda i: (-mean_abs[angles.joints[i]], angles.joints[i]),
+    )
+    diff = angles.difference_deg.detach().cpu().numpy()
+    time_s = angles.time_s.tolist()
+    out = []
+    for i in order:
+        run = _longest_run(diff[:, i])
+        if run is None:
+            continue
+        first, last = run
+        name = angles.joints[i]
+        out.append(
+            JointDifference(
+                name,
+                float(diff[first : last + 1, i].mean()),
+                time_s[first],
+                time_s[last],
+                mean_abs[name],
+            )
+        )
+        if len(out) == count:
+            break
+    return out
+
+
+def _num(x: float) -> str:
+    return format(float(x), ".10g")
+
+
+def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
+    """Write :class:`JointAngles` as CSV, long format: one row per frame and joint, columns
+    ``frame`` (video frame index), ``time_s``, ``joint``, ``reference_deg``,
+    ``student_deg``, ``difference_deg``, ``articulation_deg`` (10 significant digits; NaN
+    written as ``nan``). Returns the path."""
+    path = Path(path)
+    columns = [
+        angles.reference_deg,
+        angles.student_deg,
+        angles.difference_deg,
+        angles.articulation_deg,
+    ]
+    values = torch.stack([c.to(F64) for c in columns], -1).tolist()  # (T', J', 4)
+    with path.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            [
+                "frame",
+                "time_s",
+                "joint",
+                "reference_deg",
+                "student_deg",
+                "difference_deg",
+                "articulation_deg",
+            ]
+        )
+        for t, (time_s, row) in enumerate(zip(angles.time_s.tolist(), values, strict=True)):
+            for joint, v in zip(angles.joints, row, strict=True):
+                writer.writerow([t, _num(time_s), joint, *(_num(x) for x in v)])
+    return path
+
+
+def write_mot(angles: JointAngles, path: str | Path, name: str | None = None) -> Path:
+    """Write :class:`JointAngles` as an OpenSim storage (``.mot``) table.
+
+    Header lines ``name`` (default: the file's stem), ``version=1``, ``nRows=T'``,
+    ``nColumns=1 + 3 J'`` (time included), ``inDegrees=yes``, ``endheader``; then a
+    tab-separated column header ``time`` and per joint ``<joint>_student``,
+    ``<joint>_reference``, ``<joint>_difference``; then one row per frame (seconds,
+    degrees, 10 significant digits). Returns the path.
+    """
+    path = Path(path)
+    names = ["time"]
+    for joint in angles.joints:
+        names += [f"{joint}_student", f"{joint}_reference", f"{joint}_difference"]
+    per_joint = [angles.student_deg, angles.reference_deg, angles.difference_deg]
+    table = torch.stack([x.to(F64) for x in per_joint], -1).flatten(1)  # (T', 3 J')
+    table = torch.cat([angles.time_s.to(F64)[:, None], table], 1)
+    lines = [
+        name or path.stem,
+        "version=1",
+        f"nRows={table.shape[0]}",
+        f"nColumns={len(names)}",
+        "inDegrees=yes",
+        "endheader",
+        "\t".join(names),
+    ]
+    lines += ["\t".join(_num(x) for x in row) for row in table.tolist()]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+# --------------------------------------------------------------------------- BVH
+
+
+def matrix_to_bvh_euler(matrix: Tensor, order: str) -> Tensor:
+    """Rotation matrices to intrinsic Euler angles: the inverse of
+    :func:`motion.kinematics.euler_to_matrix`, ``R = R_o0(a) R_o1(b) R_o2(c)``.
+
+    Robust at and near gimbal lock: the middle angle is ``atan2(s, c)`` of two
+    well-conditioned entries (never an ``asin`` near 1), and the last angle is solved with
+    the first one removed (Day, "Converting a rotation matrix to Euler angles", 2012), so the
+    angles reproduce the matrix to rounding error for every rotation. At exact lock (cosine
+    of the middle angle below 1e-12) the first angle is 0.
+
+    Args:
+        matrix: ``(..., 3, 3)`` rotation matrices.
+        order: three distinct axes in BVH channel order, e.g. ``"ZYX"``.
+
+    Returns:
+        ``(..., 3)`` radians in ``order``: first and last in ``(-pi, pi]``, middle in
+        ``[-pi/2, pi/2]``.
+    """
+    if len(order) != 3 or set(order) != {"X", "Y", "Z"}:
+        raise ValueError(f"rotation order must be a permutation of 'XYZ'; got {order!r}")
+    perm = [_AXIS[a] for a in order]
+    even = (perm[1] - perm[0]) % 3 == 1
+    # in the permuted basis the rotation is Rx Ry Rz, angles negated for an odd permutation
+    m = matrix[..., perm, :][..., :, perm]
+    cos_b = torch.hypot(m[..., 0, 0], m[..., 0, 1])
+    b = torch.atan2(m[..., 0, 2], cos_b)
+    a = torch.atan2(-m[..., 1, 2], m[..., 2, 2])
+    a = torch.where(cos_b < 1e-12, torch.zeros_like(a), a)
+    sa, ca = torch.sin(a), torch.cos(a)
+    c = torch.atan2(ca * m[..., 1, 0] + sa * m[..., 2, 0], ca * m[..., 1, 1] + sa * m[..., 2, 1])
+    angles = torch.stack([a, b, c], -1)
+    return (angles if even else -angles) + 0.0  # + 0.0: no negative zeros in files
+
+
+def bvh_from_rotations(
+    hierarchy: BVH,
+    metres_per_unit: float,
+    rotations: Tensor,
+    root_position: Tensor,
+    frame_rate: float,
+    scale: float = 1.0,
+) -> BVH:
+    """A BVH on ``hierarchy``'s skeleton playing the given local rotations.
+
+    Args:
+        hierarchy: the file whose joints, channels (and their order) and End Sites to keep
+            (its motion is not used).
+        metres_per_unit: the file's length unit (:attr:`motion.kinematics.Skeleton.
+            metres_per_unit`); positions are written in it, so the file opens like
+            ``hierarchy``.
+        rotations: ``(T', J, 3, 3)`` local joint rotations (the root's is global).
+        root_position: ``(T', 3)`` the root joint's world position, metres (the position of
+            joint 0, offset included, as ``Registration.T_translation``).
+        frame_rate: frames per second (``Frame Time`` = ``1 / frame_rate``).
+        scale: body scale G: OFFSETs and End Sites multiplied by it.
+
+    Returns:
+        :class:`motion.bvh.BVH` (``path`` = ``hierarchy.path``). Rotation channels hold the
+        Euler angles (:func:`matrix_to_bvh_euler`, degrees) in each joint's channel order;
+        root position channels ``root_position / metres_per_unit - scale * OFFSET``; other
+        joints' position channels their scaled OFFSET.
+
+    Raises:
+        RegistrationError: shapes that do not fit the hierarchy, a joint without rotation
+            channels given a rotation other than the identity (it could not be stored), a
+            frame time outside :data:`motion.bvh.FRAME_TIME_RANGE`.
+    """
+    j = len(hierarchy.names)
+    if rotations.ndim != 4 or rotations.shape[1:] != (j, 3, 3):
+        raise RegistrationError(
+            f"{hierarchy.path}: rotations must be (T', {j}, 3, 3); got {tuple(rotations.shape)}"
+        )
+    t = rotations.shape[0]
+    if root_position.shape != (t, 3):
+        raise RegistrationError(f"root_position must be ({t}, 3); got {tuple(root_position.shape)}")
+    frame_time = 1.0 / _check_rate(frame_rate)
+    low, high = FRAME_TIME_RANGE
+    if not low <= frame_time <= high:
+        raise RegistrationError(
+            f"frame time 1/{frame_rate} s is outside the BVH range [{low:g}, {high:g}] s"
+        )
+    if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise RegistrationError(f"metres_per_unit must be > 0; got {metres_per_unit}")
+    scale = float(scale)
+    rotations = rotations.detach().to(F64).cpu()
+    offsets = hierarchy.offsets * scale
+    root = root_position.detach().to(F64).cpu().numpy() / metres_per_unit - offsets[0]
+    motion = np.zeros((t, sum(len(c) for c in hierarchy.channels)))
+    col = 0
+    eye = torch.eye(3, dtype=F64)
+    for joint, chans in enumerate(hierarchy.channels):
+        rot = [i for i, c in enumerate(chans) if c.endswith("rotation")]
+        if rot:
+            if len(rot) != 3:
+                raise RegistrationError(
+                    f"{hierarchy.path}: joint {hierarchy.names[joint]!r} has {len(rot)} "
+                    "rotation channels; 3 or none are supported"
+                )
+            order = "".join(chans[i][0] for i in rot)
+            deg = torch.rad2deg(matrix_to_bvh_euler(rotations[:, joint], order)).numpy()
+            motion[:, [col + i for i in rot]] = deg
+        else:
+            off = float((rotations[:, joint] - eye).abs().amax()) if t else 0.0
+            if off > 1e-9:
+                raise RegistrationError(
+                    f"{hierarchy.path}: joint {hierarchy.names[joint]!r} has no rotation "
+                    f"channels but is given rotations up to {off:.3g} from the identity"
+                )
+        for i, c in enumerate(chans):
+            if c.endswith("position"):
+                axis = _AXIS[c[0]]
+                motion[:, col + i] = root[:, axis] if joint == 0 else offsets[joint, axis]
+        col += len(chans)
+    return BVH(
+        path=hierarchy.path,
+        names=list(hierarchy.names),
+        parents=hierarchy.parents.copy(),
+        offsets=offsets,
+        channels=[list(c) for c in hierarchy.channels],
+        end_sites={k: v * scale for k, v in hierarchy.end_sites.items()},
+        frame_time=frame_time,
+        motion=motion,
+    )
+
+
+def student_bvh(reg: Registration, reference: Reference, frame_rate: float) -> BVH:
+    """The recovered motion as a BVH on the reference's skeleton.
+
+    The reference file (:attr:`Reference.name`) gives the hierarchy, channels and channel
+    order; OFFSETs are scaled by G; the root's position is ``reg.T_translation``, local
+    rotations ``reg.rotations``; lengths in the reference file's own unit
+    (``reference.skeleton.metres_per_unit``), frame time ``1 / frame_rate``
+    (:func:`bvh_from_rotations`).
+
+    Note: read back with :meth:`Skeleton.from_bvh` and no declared unit, a file with G != 1
+    gets its unit *estimated* from the scaled rest leg, i.e. about ``metres_per_unit / G``
+    (CMU's unit is itself an estimate); pass ``metres_per_unit`` to get the student's size.
+
+    Raises:
+        RegistrationError: the reference file is missing or no longer matches the
+            reference's skeleton, or as :func:`bvh_from_rotations`.
+    """
+    _check_registration(reg, reference)
+    if not Path(reference.name).is_file():
+        raise RegistrationError(
+            f"{reference.name}: the reference's BVH file gives the student's hierarchy, and "
+            "there is no such file"
+        )
+    hierarchy = read_bvh(reference.name)
+    skel = reference.skeleton
+    if list(hierarchy.names) != list(skel.names):
+        raise RegistrationError(
+            f"{reference.name}: the file's joints {hierarchy.names} are not the reference's "
+            f"{skel.names}"
+        )
+    return bvh_from_rotations(
+        hierarchy,
+        skel.metres_per_unit,
+        reg.rotations,
+        reg.T_translation,
+        frame_rate,
+        scale=float(reg.G),
+    )
+
+
+def write_student_bvh(
+    reg: Registration, reference: Reference, frame_rate: float, path: str | Path
+) -> Path:
+    """Write :func:`student_bvh` to ``path`` (:func:`motion.bvh.write_bvh`); returns it."""
+    return write_bvh(student_bvh(reg, reference, frame_rate), path)
+
+
+# --------------------------------------------------------------------------- the result
+
+_FORMAT = "motion.registration.Registration/1"
+
+
+def save_registration(reg: Registration, path: str | Path) -> Path:
+    """Write a :class:`Registration` as ``.npz``: each tensor field as its numpy array (dtype
+    kept), ``G`` as a float64 scalar, ``timings`` and ``notes`` as JSON strings, plus a
+    ``format`` tag. Returns the path (numpy adds ``.npz`` when missing)."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    arrays: dict[str, np.ndarray] = {"format": np.array(_FORMAT)}
+    for f in dataclasses.fields(Registration):
+        value = getattr(reg, f.name)
+        if isinstance(value, Tensor):
+            arrays[f.name] = value.detach().cpu().numpy()
+        elif isinstance(value, dict | list | str | None):
+            arrays[f.name] = np.array(json.dumps(value))
+        elif isinstance(value, int | float):
+            arrays[f.name] = np.array(float(value))
+        else:
+            raise TypeError(f"cannot save Registration.{f.name} of type {type(value).__name__}")
+    np.savez(path, **arrays)
+    return path
+
+
+def load_registration(path: str | Path) -> Registration:
+    """Read a :func:`save_registration` file back.
+
+    Raises:
+        RegistrationError: naming the file, when it is not such a file or misses fields.
+    """
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        keys = set(data.files)
+        if "format" not in keys or str(data["format"]) != _FORMAT:
+            raise RegistrationError(f"{path}: not a saved registration (expected {_FORMAT!r})")
+        names = [f.name for f in dataclasses.fields(Registration)]
+        missing = [n for n in names if n not in keys]
+        if missing:
+            raise RegistrationError(f"{path}: missing fields {missing}")
+        values = {}
+        for f in dataclasses.fields(Registration):
+            arr = data[f.name]
+            if arr.dtype.kind == "U":
+                values[f.name] = json.loads(str(arr))
+            elif arr.ndim == 0 and f.type in ("float", float):
+                values[f.name] = float(arr)
+            else:
+                values[f.name] = torch.from_numpy(arr.copy())
+    return Registration(**values)
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+@dataclass
+class RegistrationSummary:
+    """One registration run as a JSON record (:meth:`to_json`).
+
+    Attributes:
+        reference: the reference's name (its path).
+        reference_rate_hz: the reference's frame rate.
+        num_video_frames: ``T'``.
+        video_rate_hz: the video's frame rate.
+        c_frames: ``T'`` reference frame C(t') of each video frame.
+        c_stage1_frames: ``T'`` C after stage 1.
+        time_offset_s: reference time at the first video frame, seconds, from the
+            least-squares line ``C(t') ~ a + b t'``: ``a / reference_rate_hz``.
+        speed_ratio: reference seconds per video second, ``b * video_rate_hz /
+            reference_rate_hz`` (``None`` with one frame).
+        G: body scale.
+        silhouette_iou_mean: mean of :attr:`fit` (``None`` when it has no finite value).
+        fit: ``T'`` per-frame silhouette IoU.
+        per_joint_mean_abs_deg: mean ``|student - reference|`` flexion per joint, degrees
+            (joints whose student flexion is never defined left out).
+        largest_differences: :meth:`JointDifference.to_dict` of the largest, with text.
+        timings: seconds per stage.
+        notes: what was estimated and how.
+        settings: the run's settings as given (JSON-able values; others written as text).
+    """
+
+    reference: str
+    reference_rate_hz: float
+    num_video_frames: int
+    video_rate_hz: float
+    c_frames: list[int]
+    c_stage1_frames: list[int]
+    time_offset_s: float
+    speed_ratio: float | None
+    G: float
+    silhouette_iou_mean: float | None
+    fit: list[float | None]
+    per_joint_mean_abs_deg: dict[str, float]
+    largest_differences: list[dict]
+    timings: dict[str, float]
+    notes: dict[str, str]
+    settings: dict
+
+    def to_json(self, indent: int | None = 2) -> str:
+        """The summary as strict JSON text: NaN and infinities as ``null``; paths, tensors,
+        numpy values and dataclasses in ``settings`` as their plain values (others as
+        text)."""
+        return json.dumps(_jsonable(dataclasses.asdict(self)), indent=indent, allow_nan=False)
+
+
+def _jsonable(value):
+    """``value`` with JSON's types only (see :meth:`RegistrationSummary.to_json`)."""
+    if isinstance(value, bool | int | str) or value is None:
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Tensor | np.ndarray | np.generic):
+        return _jsonable(value.tolist())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _jsonable(dataclasses.asdict(value))
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+def summarise(
+    reg: Registration,
+    reference: Reference,
+    angles: JointAngles,
+    frame_rate: float,
+    settings: dict,
+    count: int = 3,
+    trusted: Tensor | None = None,
+) -> RegistrationSummary:
+    """The run in one record (:class:`RegistrationSummary`).
+
+    Args:
+        reg: the registration.
+        reference: its reference.
+        angles: :func:`joint_angles` of ``reg``.
+        frame_rate: the video's frames per second.
+        settings: the settings the run used (plain JSON-able values).
+        count: how many :func:`largest_differences` to keep.
+        trusted: ``(T',)`` bool, the frames the largest differences may come from, or
+            ``(T', J')`` per frame and joint of ``angles`` (default: ``reg.fit >=
+            TRUSTED_FIT``).
+    """
+    if trusted is None:
+        trusted = reg.fit >= TRUSTED_FIT
+    frame_rate = _check_rate(frame_rate)
+    c = reg.C.to(torch.long).tolist()
+    frames = np.arange(len(c), dtype=np.float64)
+    if len(c) >= 2:
+        b, a = np.polyfit(frames, np.asarray(c, dtype=np.float64), 1)
+        speed = float(b) * frame_rate / reference.frame_rate
+    else:
+        a, speed = float(c[0]), None
+    fit = [float(x) for x in reg.fit.to(F64).tolist()]
+    finite = [x for x in fit if math.isfinite(x)]
+    return RegistrationSummary(
+        reference=str(reference.name),
+        reference_rate_hz=float(reference.frame_rate),
+        num_video_frames=reg.num_frames,
+        video_rate_hz=frame_rate,
+        c_frames=c,
+        c_stage1_frames=reg.C_stage1.to(torch.long).tolist(),
+        time_offset_s=float(a) / reference.frame_rate,
+        speed_ratio=speed,
+        G=float(reg.G),
+        silhouette_iou_mean=sum(finite) / len(finite) if finite else None,
+        fit=[_finite_or_none(x) for x in fit],
+        per_joint_mean_abs_deg={
+            k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
+        },
+        largest_differences=[
+            d.to_dict() for d in largest_differences(trusted_angles(angles, trusted), count)
+        ],
+        timings={k: float(v) for k, v in reg.timings.items()},
+        notes={k: str(v) for k, v in reg.notes.items()},
+        settings=dict(settings),
+    )
