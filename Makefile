@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m experiments demo
+	$(BIN)/python -m motion demo --out runs/demo
 
 test: $(STAMP)
 	$(BIN)/ruff check .

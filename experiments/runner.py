@@ -41,6 +41,7 @@ from experiments import (
     nbp_single_image,
     pose2sim_real,
     register_long,
+    register_real,
     register_synthetic,
     stick_pose,
     stick_time,
@@ -119,6 +120,12 @@ EXPERIMENTS = {
         register_long.run,
         register_long.plot,
         register_long.TIMINGS,
+    ),
+    "register_real": Experiment(
+        register_real.RegisterRealConfig,
+        register_real.run,
+        register_real.plot,
+        register_real.TIMINGS,
     ),
 }
 

@@ -18,6 +18,12 @@ the traceback as well.
 
 from __future__ import annotations
 
+import os
+
+# FFmpeg inside OpenCV writes its own complaints ("moov atom not found") to stderr before our
+# one-line error; bad input gets that line alone (set before cv2 is first imported)
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
 import argparse
 import sys
 import textwrap
@@ -98,9 +104,7 @@ def _synth_epilog() -> str:
 def _parser() -> Parser:
     parser = Parser(prog="python -m motion", description=__doc__)
     add_debug(parser)
-    sub = parser.add_subparsers(
-        dest="command", required=True, metavar="{info,synth,register,demo}"
-    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,synth,register,demo}")
     p_info = sub.add_parser(
         "info",
         help="describe a BVH file: skeleton, rate, units, body parts",

@@ -74,6 +74,10 @@ __all__ = [
 Init = tuple[Tensor, Tensor]
 
 
+#: how the note of :func:`estimate_body_scale` starts when G could not be estimated
+SCALE_NOT_ESTIMATED = "G = 1.0 (not estimated)"
+
+
 # -- settings and results ----------------------------------------------------------------------
 @dataclass(frozen=True)
 class Stage1Settings:
@@ -1459,7 +1463,7 @@ def estimate_body_scale(
     rig = video.cameras
     if not rig.orthographic and rig.num_cameras < 2:
         return 1.0, (
-            "G = 1.0 (not estimated): one perspective camera cannot tell body size from depth"
+            f"{SCALE_NOT_ESTIMATED}: one perspective camera cannot tell body size from depth"
         )
     nf = min(frames, video.num_frames)
     rows = torch.arange(nf)

@@ -1,10 +1,12 @@
 """``python -m motion register``: videos and a reference BVH in, the registration's files out.
 
-:func:`run_register` is the whole job, in order: check the output folder can be written, read
-the settings, the reference and the calibration, turn the videos into features, check that
-they fit together (durations, cameras), register (progress bars per stage), then write every
-output into a staging folder inside ``out`` and move the files into place only when all of
-them are written -- bad input never leaves a partial result that looks like one.
+:func:`run_register` is the whole job, in order: read the settings, check the output folder
+can be written, read the reference and the calibration (one camera per video), check the
+reference is long enough for the videos as their containers describe them, turn the videos
+into features, check that they fit together (durations, cameras), register (progress bars
+per stage), then write every output into a staging folder inside ``out`` and move the files
+into place only when all of them are written -- bad input never leaves a partial result that
+looks like one (nor an output folder the run created).
 
 Outputs (:data:`OUTPUT_FILES`): ``registration.npz``, ``summary.json``, ``student.bvh``,
 ``joint_angles.csv``, ``joint_angles.mot``, ``overlay_<camera>.mp4`` per camera and
@@ -13,7 +15,9 @@ Outputs (:data:`OUTPUT_FILES`): ``registration.npz``, ``summary.json``, ``studen
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import os
 import shutil
 import sys
@@ -22,6 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 from tqdm import tqdm
 
 from motion.bodyparts import BodyPartMappingError
@@ -43,7 +48,7 @@ from motion.registration.pipeline import register
 from motion.registration.render import body_poses, points_in_view, side_by_side_frames
 from motion.registration.report import ReportInputs, write_report
 from motion.registration.types import Reference, Registration, RegistrationError
-from motion.registration.video import VideoInput, features_from_videos
+from motion.registration.video import VideoInput, VideoSettings, features_from_videos
 
 __all__ = ["OUTPUT_FILES", "RegisterJob", "RegisterOutcome", "run_register", "summary_lines"]
 
@@ -96,7 +101,26 @@ class RegisterOutcome:
     files: dict[str, Path]
 
 
+def _missing_folders(out: Path) -> list[Path]:
+    """``out`` and its ancestors that do not exist yet, deepest first (the folders a run
+    creates, and removes again if it fails before writing anything)."""
+    out = out.absolute()
+    missing = []
+    for p in [out, *out.parents]:
+        if p.exists() or p.is_symlink():
+            break
+        missing.append(p)
+    return missing
+
+
 def _check_writable(out: Path) -> None:
+    """Create ``out`` (and its parents) and write a file there, or say why not."""
+    for p in [out, *out.parents]:
+        if p.exists() and not p.is_dir():
+            what = "is" if p == out else f"cannot be created: {p} is"
+            raise RegistrationError(
+                f"{out}: the output folder {what} a file, not a folder; give another --out"
+            )
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
@@ -107,30 +131,98 @@ def _check_writable(out: Path) -> None:
         ) from None
 
 
+def _remove_if_empty(folders: list[Path]) -> None:
+    """Remove the ``folders`` (deepest first) that a failed run created, if still empty."""
+    for p in folders:
+        try:
+            p.rmdir()
+        except OSError:
+            return
+
+
 def _read_reference(path: Path) -> Reference:
     try:
         return Reference.from_bvh(path)
     except BodyPartMappingError as err:
+        # the mapper's advice to pass a spec file is for `motion info --spec`: register
+        # reads the joints by their names only
+        why = " ".join(str(err).split()).split(" Pass a spec file")[0].rstrip(". ")
         raise RegistrationError(
-            f"{path}: its joints do not give every body part the body spec needs ({err}); "
-            "see motion/data/bodyparts/ for the specs, or `python -m motion info "
-            f"{path}` for its skeleton"
+            f"{path}: its joints do not give every body part the body spec needs ({why}); "
+            "motion register needs a human skeleton whose joint names a bundled body-part "
+            "spec knows (motion/data/bodyparts/); `python -m motion info "
+            f"{path}` shows its skeleton and what maps"
         ) from None
 
 
-def _read_rig(path: Path | None) -> CameraRig | None:
-    return None if path is None else load_pose2sim_calibration(path)
+def _read_rig(path: Path | None, videos: list[Path]) -> CameraRig | None:
+    """The calibration's cameras, one per video (checked here, naming the file, before any
+    video is decoded)."""
+    if path is None:
+        return None
+    rig = load_pose2sim_calibration(path)
+    if rig.num_cameras != len(videos):
+        raise RegistrationError(
+            f"{path}: the calibration has {rig.num_cameras} camera(s) ({', '.join(rig.names)}) "
+            f"but {len(videos)} video(s) were given ({', '.join(p.name for p in videos)}); "
+            "give one --video per calibrated camera, in the calibration's order"
+        )
+    return rig
 
 
-def _check_durations(reference: Reference, video: VideoInput) -> None:
-    f = video.features
+@contextlib.contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 to the null device meanwhile: FFmpeg inside OpenCV prints its
+    complaints about a file (``moov atom not found``) there, past ``sys.stderr``."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _container_frames(path: Path, settings: VideoSettings) -> tuple[int, float] | None:
+    """The frames kept and their rate as the video's container says (``None`` when it
+    does not say, or the file cannot be opened: :func:`features_from_videos` then reports
+    it), from ``start``, ``count``, ``step`` and ``frame_rate`` -- without decoding."""
+    if not path.is_file():
+        return None
+    with _native_stderr_silenced():  # a bad file is reported once, by the reader proper
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                return None
+            total = int(max(cap.get(cv2.CAP_PROP_FRAME_COUNT), 0))
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+        finally:
+            cap.release()
+    rate = settings.frame_rate or (fps if math.isfinite(fps) else 0.0)
+    if total <= 0 or not rate > 0:
+        return None
+    kept = len(range(settings.start, total, settings.step))
+    if settings.count is not None:
+        kept = min(kept, settings.count)
+    return kept, rate / settings.step
+
+
+def _check_durations(reference: Reference, frames: int, rate: float, slack: float = 1.0) -> None:
+    """The reference must last at least :data:`MIN_REFERENCE_FRACTION` of the video's
+    ``frames`` at ``rate`` (``slack`` < 1 tolerates a container's estimated count)."""
     ref_s = reference.num_frames / reference.frame_rate
-    vid_s = f.num_frames / f.frame_rate
-    if ref_s < MIN_REFERENCE_FRACTION * vid_s:
-        most = int(ref_s / MIN_REFERENCE_FRACTION * f.frame_rate)
+    vid_s = frames / rate
+    if frames and ref_s < MIN_REFERENCE_FRACTION * vid_s * slack:
+        most = int(ref_s / MIN_REFERENCE_FRACTION * rate)
         raise RegistrationError(
             f"{reference.name}: the reference lasts {ref_s:.2f} s but the video {vid_s:.2f} s: "
-            f"it can be aligned to at most about {most} of the {f.num_frames} video frames, "
+            f"it can be aligned to at most about {most} of the {frames} video frames, "
             f"and the rest would not be aligned; choose the video's stretch with "
             f"video.start= and video.count= (e.g. video.count={most})"
         )
@@ -223,8 +315,18 @@ def _publish(stage: Path, out: Path, files: dict[str, Path]) -> dict[str, Path]:
 
 def run_register(job: RegisterJob, show_progress: bool = True) -> RegisterOutcome:
     """Run ``motion register`` (see the module's docstring); raises a ``ValueError``
-    subclass or ``OSError`` with a one-line message on bad input, before writing anything."""
-    _check_writable(job.out)
+    subclass or ``OSError`` with a one-line message on bad input, before writing anything
+    (an output folder it had to create is removed again)."""
+    created = _missing_folders(Path(job.out))
+    try:
+        return _run(job, show_progress)
+    except BaseException:
+        _remove_if_empty(created)
+        raise
+
+
+def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
+    # the cheap checks first (settings, files, the videos' containers), then the decoding
     cfg = load_config(job.config, list(job.overrides))
     given = {}
     if job.person is not None:
@@ -233,10 +335,14 @@ def run_register(job: RegisterJob, show_progress: bool = True) -> RegisterOutcom
         given["backgrounds"] = [str(p) for p in job.backgrounds]
     if given:
         cfg = dataclasses.replace(cfg, video=dataclasses.replace(cfg.video, **given))
+    _check_writable(job.out)
     reference = _read_reference(job.reference)
-    rig = _read_rig(job.calibration)
+    rig = _read_rig(job.calibration, job.videos)
+    probed = _container_frames(job.videos[0], cfg.video)
+    if probed is not None:
+        _check_durations(reference, *probed, slack=0.9)
     video = features_from_videos(job.videos, rig, cfg.video)
-    _check_durations(reference, video)
+    _check_durations(reference, video.features.num_frames, video.features.frame_rate)
     log = _log(show_progress)
     if video.note:
         log(video.note)
@@ -252,6 +358,12 @@ def run_register(job: RegisterJob, show_progress: bool = True) -> RegisterOutcom
     stage = Path(tempfile.mkdtemp(dir=job.out, prefix=".partial-"))
     try:
         summary, files = _write_outputs(stage, job, cfg, reference, video, reg, show_progress)
+    except OSError as err:
+        shutil.rmtree(stage, ignore_errors=True)
+        if err.filename is not None and Path(err.filename).parent == stage:
+            # name the file as it would have been presented, not the staging folder's copy
+            raise OSError(err.errno, err.strerror, str(job.out / Path(err.filename).name)) from err
+        raise
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise

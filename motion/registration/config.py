@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -62,65 +63,203 @@ def _fields(obj) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(obj)}
 
 
-def _accepts(hint, current, value) -> bool:
-    """Whether ``value`` fits a field annotated ``hint`` (holding ``current``)."""
+def _options(hint) -> tuple[list, bool]:
+    """The types a field annotated ``hint`` takes, and whether ``None`` is one of them
+    (``int | None`` -> ``([int], True)``; ``tuple[float, float]`` -> itself, not its
+    elements)."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        return [a for a in args if a is not type(None)], type(None) in args
+    return [hint], False
+
+
+def _elements(hint, value) -> list | None:
+    """The element types of a list or tuple field for ``value``'s items (``None``: any)."""
     args = typing.get_args(hint)
-    if value is None:
-        return current is None or type(None) in args
-    types = [a for a in args if a is not type(None)] or [hint]
-    for t in types:
-        origin = typing.get_origin(t) or t
-        if origin is float and isinstance(value, int | float) and not isinstance(value, bool):
+    if not args:
+        return None
+    if typing.get_origin(hint) is tuple and not (len(args) == 2 and args[1] is Ellipsis):
+        return list(args)
+    return [args[0]] * len(value)
+
+
+def _fits(t, value) -> bool:
+    """Whether ``value`` (not ``None``) fits the type ``t``."""
+    origin = typing.get_origin(t) or t
+    if origin is typing.Any:
+        return True
+    if origin is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if origin is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if origin in (bool, str):
+        return isinstance(value, origin)
+    if origin in (list, tuple):
+        if not isinstance(value, list | tuple):
+            return False
+        element = _elements(t, value)
+        if element is None:
             return True
-        if origin is int and isinstance(value, int) and not isinstance(value, bool):
-            return True
-        if origin in (bool, str) and isinstance(value, origin):
-            return True
-        if origin in (list, tuple) and isinstance(value, list | tuple):
-            return True
-        if dataclasses.is_dataclass(origin) and isinstance(value, origin):
-            return True
+        return len(element) == len(value) and all(
+            _accepts(e, None, v) for e, v in zip(element, value, strict=True)
+        )
+    if isinstance(origin, type):
+        return isinstance(value, origin)
     return False
 
 
+def _accepts(hint, current, value) -> bool:
+    """Whether ``value`` fits a field annotated ``hint`` (holding ``current``)."""
+    options, optional = _options(hint)
+    if value is None:
+        return optional or current is None
+    return any(_fits(t, value) for t in options)
+
+
 def _convert(hint, value):
-    """YAML's value as the field's type (a float field given ``3`` gets ``3.0``; a tuple
-    field given a list gets a tuple)."""
-    args = [a for a in typing.get_args(hint) if a is not type(None)] or [hint]
-    origin = typing.get_origin(args[0]) or args[0]
-    if origin is float and isinstance(value, int):
+    """YAML's value as the field's type (checked by :func:`_accepts`): a float field given
+    ``3`` gets ``3.0``; a tuple field given a list gets a tuple, a list field a list, their
+    items converted likewise."""
+    if value is None:
+        return None
+    options, _ = _options(hint)
+    t = next(t for t in options if _fits(t, value))
+    origin = typing.get_origin(t) or t
+    if origin is float:
         return float(value)
-    if origin is tuple and isinstance(value, list):
-        return tuple(value)
+    if origin in (list, tuple):
+        element = _elements(t, value)
+        items = (
+            list(value)
+            if element is None
+            else [_convert(e, v) for e, v in zip(element, value, strict=True)]
+        )
+        return tuple(items) if origin is tuple else items
     return value
+
+
+def _type_name(hint) -> str:
+    return str(hint).replace("typing.", "").replace("<class '", "").replace("'>", "")
+
+
+@dataclass(frozen=True)
+class _Item:
+    """One setting to apply: ``rest`` is the dotted path still to walk from the settings
+    object at hand, ``key`` the whole key as the user wrote it (for messages)."""
+
+    rest: str
+    key: str
+    value: object
+    where: str
+
+
+def _walked(item: _Item) -> str:
+    """The part of the user's key already walked (``"refine."`` when at ``particles``)."""
+    n = len(item.key) - len(item.rest)
+    return item.key[:n] if n > 0 else ""
+
+
+def _leaf_keys(obj, prefix: str = "") -> list[str]:
+    """Every settable dotted key under the settings dataclass ``obj``."""
+    keys = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            keys += _leaf_keys(value, f"{prefix}{f.name}.")
+        else:
+            keys.append(f"{prefix}{f.name}")
+    return keys
+
+
+def _user_keys() -> list[str]:
+    """Every key as the user writes it (``refine.particles``, not
+    ``registration.refine.particles``)."""
+    cfg = RegisterConfig()
+    return _leaf_keys(cfg.video, "video.") + _leaf_keys(cfg.registration)
+
+
+def _suggest(key: str) -> list[str]:
+    """Known keys close to ``key``: the same last name elsewhere, else close spellings."""
+    keys = _user_keys()
+    last = key.rpartition(".")[2]
+    same = [k for k in keys if k.rpartition(".")[2] == last and k != key]
+    return same[:3] or difflib.get_close_matches(key, keys, n=3, cutoff=0.75)
+
+
+def _unknown(obj, item: _Item, fields) -> ConfigError:
+    walked = _walked(item)
+    close = _suggest(item.key)
+    if not close:
+        head = item.rest.partition(".")[0]
+        names = [*fields, *(_SHORTCUTS if isinstance(obj, RegisterConfig) else ())]
+        close = [walked + c for c in difflib.get_close_matches(head, names, n=3)]
+    hint = f" (did you mean {' or '.join(close)}?)" if close else ""
+    if isinstance(obj, RegisterConfig):
+        known = "video.*, stage1.*, refine.*, scale, seed (python -m motion register --help)"
+    else:
+        known = ", ".join(sorted(walked + n for n in fields))
+    return ConfigError(f"{item.where}: unknown setting {item.key!r}{hint}; known: {known}")
+
+
+def _apply(obj, items: list[_Item]):
+    """A copy of the settings dataclass ``obj`` with every item set (later items win).
+
+    The changes to one dataclass are made by one ``dataclasses.replace``, so settings that
+    are checked together (``refine.band`` against ``refine.particles``) may be given in any
+    order; a check that fails names where the settings came from."""
+    fields = _fields(obj)
+    hints = typing.get_type_hints(type(obj))
+    leaves: dict[str, object] = {}
+    nested: dict[str, list[_Item]] = {}
+    wheres: list[str] = []  # where each change came from
+    given: list[str] = []  # the keys changed here, as the user wrote them
+    for item in items:
+        head, _, rest = item.rest.partition(".")
+        name = _walked(item) + head
+        if head not in fields:
+            raise _unknown(obj, item, fields)
+        current = getattr(obj, head)
+        if rest:
+            if not dataclasses.is_dataclass(current):
+                raise ConfigError(
+                    f"{item.where}: {name} is a single setting, it has no sub-settings; "
+                    f"got {item.key!r}"
+                )
+            nested.setdefault(head, []).append(dataclasses.replace(item, rest=rest))
+            continue
+        if dataclasses.is_dataclass(current) and not isinstance(item.value, type(current)):
+            names = ", ".join(f"{name}.{f}" for f in _fields(current))
+            raise ConfigError(
+                f"{item.where}: {name} is a group of settings, not one value (got "
+                f"{item.value!r}); set one of {names}"
+            )
+        if not _accepts(hints[head], current, item.value):
+            raise ConfigError(
+                f"{item.where}: {name} must be {_type_name(hints[head])}; got {item.value!r}"
+            )
+        leaves[head] = _convert(hints[head], item.value)
+        nested.pop(head, None)  # a whole group given later replaces earlier sub-settings
+        wheres.append(item.where)
+        given.append(item.key)
+    changes = dict(leaves)
+    for head, sub in nested.items():
+        changes[head] = _apply(changes.get(head, getattr(obj, head)), sub)
+        wheres += [i.where for i in sub]
+        given += [i.key for i in sub]
+    if not changes:
+        return obj
+    try:
+        return dataclasses.replace(obj, **changes)
+    except ValueError as err:
+        where = ", ".join(dict.fromkeys(wheres))
+        keys = ", ".join(dict.fromkeys(given))
+        raise ConfigError(f"{where}: {' '.join(str(err).split())} (given: {keys})") from None
 
 
 def override(obj, key: str, value, where: str = "settings"):
     """A copy of the settings dataclass ``obj`` with the field at dotted ``key`` set to
     ``value`` (checked against the field's annotation)."""
-    head, _, rest = key.partition(".")
-    fields = _fields(obj)
-    if head not in fields:
-        close = difflib.get_close_matches(head, fields, n=3)
-        hint = f" (did you mean {', '.join(close)}?)" if close else ""
-        known = ", ".join(sorted(fields))
-        raise ConfigError(f"{where}: unknown setting {key!r}{hint}; known here: {known}")
-    current = getattr(obj, head)
-    hints = typing.get_type_hints(type(obj))
-    if rest:
-        if not dataclasses.is_dataclass(current):
-            raise ConfigError(f"{where}: {head!r} has no sub-settings; got {key!r}")
-        return dataclasses.replace(obj, **{head: override(current, rest, value, f"{where}.{head}")})
-    if dataclasses.is_dataclass(current) and not isinstance(value, type(current)):
-        names = ", ".join(f"{head}.{f}" for f in _fields(current))
-        raise ConfigError(f"{where}: {head!r} is a group of settings; set one of {names}")
-    if not _accepts(hints[head], current, value):
-        raise ConfigError(f"{where}: {head} must be {_type_name(hints[head])}; got {value!r}")
-    return dataclasses.replace(obj, **{head: _convert(hints[head], value)})
-
-
-def _type_name(hint) -> str:
-    return str(hint).replace("typing.", "").replace("<class '", "").replace("'>", "")
+    return _apply(obj, [_Item(key, key, value, where)])
 
 
 #: top-level shortcuts: ``seed=1`` means ``registration.seed=1``
@@ -171,9 +310,7 @@ def load_config(
     for item in overrides or []:
         key, value = _parse_assignment(item)
         values.append((key, value, "command line"))
-    for key, value, where in values:
-        cfg = override(cfg, _route(key), value, where)
-    return cfg
+    return _apply(cfg, [_Item(_route(key), key, value, where) for key, value, where in values])
 
 
 def settings_dict(cfg: RegisterConfig) -> dict:

@@ -803,7 +803,8 @@ class RegistrationSummary:
         fit: ``T'`` per-frame silhouette IoU.
         per_joint_mean_abs_deg: mean ``|student - reference|`` flexion per joint, degrees
             (joints whose student flexion is never defined left out).
-        largest_differences: :meth:`JointDifference.to_dict` of the largest, with text.
+        largest_differences: :meth:`JointDifference.to_dict` of the joints that differ most
+            (:func:`largest_differences` on the trusted frames), the largest stretch first.
         timings: seconds per stage.
         notes: what was estimated and how.
         settings: the run's settings as given (JSON-able values; others written as text).
@@ -902,7 +903,11 @@ def summarise(
             k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
         },
         largest_differences=[
-            d.to_dict() for d in largest_differences(trusted_angles(angles, trusted), count)
+            d.to_dict()
+            for d in sorted(
+                largest_differences(trusted_angles(angles, trusted), count),
+                key=lambda d: -abs(d.mean_difference_deg),
+            )
         ],
         timings={k: float(v) for k, v in reg.timings.items()},
         notes={k: str(v) for k, v in reg.notes.items()},

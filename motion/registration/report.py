@@ -27,6 +27,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from motion.cameras import CameraRig
+from motion.registration.approximate import SCALE_NOT_ESTIMATED
 from motion.registration.export import (
     TRUSTED_FIT,
     JointAngles,
@@ -45,6 +46,8 @@ FIT_GOOD = 0.7
 FIT_FAIR = TRUSTED_FIT
 #: key frames shown side by side in the report
 KEY_FRAMES = 4
+#: seconds at least between two key frames
+KEY_FRAME_GAP_S = 0.25
 #: pixels of height of each key-frame panel (cropped around the person)
 KEY_FRAME_HEIGHT = 300
 #: joints drawn in the heat map (the largest mean differences; all if fewer)
@@ -136,7 +139,7 @@ def correspondence_figure(inputs: ReportInputs) -> str:
         "--",
         color="C3",
         lw=1,
-        label=f"offset {s.time_offset_s:.2f} s, speed x{s.speed_ratio:.2f}",
+        label=f"straight-line fit: speed x{s.speed_ratio:.2f}",
     )
     ax.set_xlabel("student video time (s)")
     ax.set_ylabel("reference time (s)")
@@ -164,8 +167,7 @@ def heatmap_figure(inputs: ReportInputs) -> str:
     time = _video_time(inputs)
     fig, ax = plt.subplots(figsize=(7.5, 0.28 * len(cols) + 1.4))
     step = (time[1] - time[0]) if len(time) > 1 else 1.0
-    cmap = matplotlib.colormaps["RdBu_r"].copy()
-    cmap.set_bad("0.8")
+    cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.8")
     im = ax.imshow(
         diff,
         aspect="auto",
@@ -202,23 +204,23 @@ def fit_figure(inputs: ReportInputs) -> str:
 
 def key_frames(inputs: ReportInputs, count: int = KEY_FRAMES) -> list[KeyFrame]:
     """The middle of each of the largest differences, then the best-fitting frame, then
-    evenly spread frames, without repeats, in time order."""
+    evenly spread frames, in time order; a candidate closer than :data:`KEY_FRAME_GAP_S`
+    to one already chosen is skipped (a finding's frame is kept over the others)."""
     time = _video_time(inputs)
     n = len(time)
     chosen: dict[int, str] = {}
+
+    def offer(t: int, why: str) -> None:
+        far = all(abs(time[t] - time[k]) >= KEY_FRAME_GAP_S for k in chosen)
+        if len(chosen) < count and far:
+            chosen[t] = why
+
     for d in inputs.summary.largest_differences:
         mid = 0.5 * (d["start_s"] + d["end_s"])
-        t = int(np.argmin(np.abs(time - mid)))
-        chosen.setdefault(t, d["text"])
-        if len(chosen) >= count:
-            break
-    if len(chosen) < count:
-        best = int(np.argmax(inputs.registration.fit.numpy()))
-        chosen.setdefault(best, "the best-fitting frame")
+        offer(int(np.argmin(np.abs(time - mid))), d["text"])
+    offer(int(np.argmax(inputs.registration.fit.numpy())), "the best-fitting frame")
     for t in np.linspace(0, n - 1, count + 2)[1:-1].round().astype(int).tolist():
-        if len(chosen) >= count:
-            break
-        chosen.setdefault(int(t), "")
+        offer(int(t), "")
     return [KeyFrame(t, chosen[t]) for t in sorted(chosen)]
 
 
@@ -282,6 +284,9 @@ def render_report(inputs: ReportInputs) -> str:
         title=f"Registration of {html.unescape(', '.join(inputs.video_names))}",
         s=s,
         duration=f"{s.num_video_frames / s.video_rate_hz:.2f}",
+        start_s=f"{s.c_frames[0] / s.reference_rate_hz:.2f}",
+        size_measured=not s.notes.get("G", "").startswith(SCALE_NOT_ESTIMATED),
+        size_note=s.notes.get("G", ""),
         speed_words=_speed_words(s.speed_ratio),
         fit_mean=f"{float(fit.mean()):.2f}",
         fit_word=_fit_word(float(fit.mean())),

@@ -200,6 +200,8 @@ class VideoInput:
         note: what was assumed, for the report ("" when nothing was): an uncalibrated
             camera's focal length, padding.
         paths: the videos, one per camera.
+        start, step: the first frame of the files kept and the step between kept frames
+            (frame ``i`` of the features is frame ``start + i * step`` of the files).
     """
 
     features: VideoFeatures
@@ -207,6 +209,8 @@ class VideoInput:
     scale: float
     note: str
     paths: list[Path]
+    start: int = 0
+    step: int = 1
 
 
 def default_camera(
@@ -637,4 +641,6 @@ def features_from_videos(
         None,
         name=", ".join(p.name for p in paths),
     )
-    return VideoInput(features, frames, scale, "; ".join(notes), paths)
+    return VideoInput(
+        features, frames, scale, "; ".join(notes), paths, settings.start, settings.step
+    )

@@ -49,6 +49,11 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "e3d_mean",
     ],
     "register_long": ["c_err_mean", "c_err_mean_stage1", "a_err_deg_mean"],
+    "register_real": [
+        "sports2d_silhouette_iou_mean",
+        "pose2sim_silhouette_iou_mean",
+        "pose2sim_e3d_mean",
+    ],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "stick_pose": ["poses_per_s", "opencv_poses_per_s"],
@@ -59,6 +64,7 @@ TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "nbp_ablation": ["sec_per_frame_full"],
     "register_synthetic": ["sec_per_video_frame"],
     "register_long": ["sec_stage1", "sec_total", "peak_rss_mb"],
+    "register_real": ["sports2d_sec", "pose2sim_sec"],
 }
 
 
@@ -68,7 +74,7 @@ def _has(keys, key) -> bool:
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
 def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
-    if path.stem == "pose2sim_real" and not SHARED_DATA.is_dir():
+    if path.stem in ("pose2sim_real", "register_real") and not SHARED_DATA.is_dir():
         pytest.skip(f"needs the shared data folder at {SHARED_DATA}")
     metrics = run_config(path, {"tiny": True, "out_dir": str(tmp_path)})
     name = path.stem

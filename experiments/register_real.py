@@ -1,0 +1,264 @@
+"""Registration on real videos (issue: ``motion register``): the two real cases of
+``../shared/data``.
+
+* **sports2d**: the bundled CMU walk (02_01) against the woman walking past in the Sports2D
+  demo video -- one uncalibrated phone camera (a nominal field of view), outdoors, another
+  person doing jumping jacks on a box; the person to follow is picked by a pixel near her.
+  No ground truth: ``sports2d_silhouette_iou_mean`` says how well the registered body
+  covers her silhouette.
+* **pose2sim**: a reference built from the Pose2Sim trial's own triangulated 3-D keypoints
+  (:func:`motion.registration.markers.reference_from_markers`, the Butterworth-filtered
+  TRC) against its 4 calibrated cameras. The reference *is* the trial, so the true C is
+  the identity and the recovered joints can be compared with the triangulation:
+  ``pose2sim_e3d_mean`` (mean joint distance over the joints at markers, fraction of the body
+  height), ``pose2sim_c_err_mean`` (frames), and the bend of knees and elbows against
+  the OpenSim angles shipped with the trial (``pose2sim_angle_err_deg_mean``; the
+  reference's own bend against OpenSim, ``pose2sim_reference_angle_err_deg_mean``, is the
+  floor a skeleton fitted to the markers allows).
+
+Needs ``../shared/data``: skipped with a message when that default location is absent.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from experiments.config import ConfigError, ExperimentConfig, ExperimentSkipped
+from experiments.progress import note, progress
+from experiments.stick_time import BUNDLED
+from motion.bodyparts import load_spec
+from motion.cameras import load_pose2sim_calibration
+from motion.keypoints import read_trc
+from motion.registration import Reference, RegistrationSettings, register
+from motion.registration.export import joint_flexion, student_kinematics
+from motion.registration.markers import MARKER_JOINTS, reference_from_markers
+from motion.registration.refine import RefineSettings
+from motion.registration.video import VideoSettings, features_from_videos
+from motion.settings import setting
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+TIMINGS = ("sports2d_sec", "pose2sim_sec")
+
+SPORTS2D = Path("video/sports2d_demo/demo.mp4")
+POSE2SIM_VIDEOS = Path("video/pose2sim_balancing_trial")
+POSE2SIM_CALIBRATION = POSE2SIM_VIDEOS / "calibration" / "Calib_qualisys.toml"
+POSE2SIM_TRC = Path(
+    "keypoints/pose2sim_balancing_trial/pose3d/S00_P00_T01_BalancingTrial_0-100_filt_butterworth.trc"
+)
+POSE2SIM_MOT = Path(
+    "keypoints/pose2sim_balancing_trial/opensim/S00_P00_T01_BalancingTrial_filt_butterworth_0-100_body25b.mot"
+)
+#: OpenSim coordinate -> the skeleton joint whose bend it is (knee flexion, elbow flexion)
+OPENSIM_BENDS = {
+    "knee_angle_r": "RightLeg",
+    "knee_angle_l": "LeftLeg",
+    "elbow_flex_r": "RightForeArm",
+    "elbow_flex_l": "LeftForeArm",
+}
+#: the TRC's axes (Y up) in the calibration's world (Z up)
+TRC_TO_WORLD = [2, 0, 1]
+
+
+@dataclass
+class RegisterRealConfig(ExperimentConfig):
+    """Fields of ``experiments/configs/register_real.yaml``."""
+
+    TINY: ClassVar[dict] = {
+        "frames": 8,
+        "width": 96,
+        "particles": 12,
+        "iterations": 1,
+        "restarts": 1,
+    }
+
+    data: str = setting(
+        str(SHARED),
+        "the shared data folder (default: ../shared/data beside the checkout; the run is "
+        "skipped when that default is absent, a named folder must exist)",
+    )
+    cases: list[str] = setting(
+        ["sports2d", "pose2sim"], "which real cases to run", choices=("sports2d", "pose2sim")
+    )
+    reference: str = setting(BUNDLED, "the reference BVH of the sports2d case", path="file")
+    sports2d_start: int = setting(75, "first video frame of the walk (sports2d)", ge=0)
+    sports2d_person: list[float] = setting(
+        [1190.0, 660.0], "x,y pixel near the walker in that frame (sports2d)", length=2
+    )
+    frames: int = setting(80, "video frames per case (pose2sim has 100)", ge=2)
+    width: int = setting(240, "working width of the videos, pixels", ge=32, le=4096)
+    particles: int = setting(60, "particles per part", ge=2)
+    iterations: int = setting(4, "particle BP iterations per pass", ge=1)
+    restarts: int = setting(1, "particle BP passes", ge=1)
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    out_dir: str = setting("runs/register_real", "output folder")
+    tiny: bool = setting(False, "a quick run (8 frames at 96 px, 12 particles, 1 iteration)")
+
+
+def _data_root(cfg: RegisterRealConfig) -> Path:
+    root = Path(cfg.data)
+    if (root / SPORTS2D).is_file() and (root / POSE2SIM_CALIBRATION).is_file():
+        return root
+    if root.resolve() == SHARED.resolve():
+        raise ExperimentSkipped(f"register_real needs the shared data set ({root} is incomplete)")
+    raise ConfigError(
+        f"data={cfg.data}: expected the shared data folder (with {SPORTS2D} and "
+        f"{POSE2SIM_CALIBRATION})"
+    )
+
+
+def _settings(cfg: RegisterRealConfig) -> RegistrationSettings:
+    refine = RefineSettings(
+        particles=cfg.particles,
+        iterations=cfg.iterations,
+        restarts=cfg.restarts,
+        band=min(12, (cfg.particles - 1) // 2),
+    )
+    return RegistrationSettings(refine=refine, seed=cfg.seed)
+
+
+def _sports2d(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
+    video = features_from_videos(
+        [root / SPORTS2D],
+        None,
+        VideoSettings(
+            width=cfg.width,
+            start=cfg.sports2d_start,
+            count=cfg.frames,
+            person=list(cfg.sports2d_person),
+        ),
+    )
+    t0 = time.perf_counter()
+    result = register(
+        Reference.from_bvh(cfg.reference),
+        video.features,
+        settings=_settings(cfg),
+        progress=progress,
+    )
+    seconds = time.perf_counter() - t0
+    metrics = {
+        "sports2d_silhouette_iou_mean": float(result.fit.mean()),
+        "sports2d_sec": seconds,
+    }
+    return metrics, {"sports2d_iou": result.fit.numpy(), "sports2d_c": result.C.numpy()}
+
+
+def _read_mot(path: Path) -> tuple[list[str], np.ndarray]:
+    lines = path.read_text().splitlines()
+    head = next(i for i, line in enumerate(lines) if line.strip() == "endheader")
+    names = lines[head + 1].split()
+    rows = np.array(
+        [[float(v) for v in line.split()] for line in lines[head + 2 :] if line.strip()]
+    )
+    return names, rows
+
+
+def _bends(reference: Reference, positions: torch.Tensor, joints: list[str]) -> torch.Tensor:
+    """``(T', len(joints))`` bend angles (degrees) of the named joints."""
+    flex = joint_flexion(positions, reference.skeleton.parents)
+    return flex[:, [reference.skeleton.index(j) for j in joints]]
+
+
+def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
+    markers = read_trc(root / POSE2SIM_TRC)
+    bvh = Path(cfg.out_dir) / "pose2sim_reference.bvh"
+    bvh.parent.mkdir(parents=True, exist_ok=True)
+    reference = reference_from_markers(markers, out_bvh=bvh)
+    n = min(cfg.frames, reference.num_frames)
+    rig = load_pose2sim_calibration(root / POSE2SIM_CALIBRATION)
+    videos = [root / POSE2SIM_VIDEOS / f"cam0{c + 1}.mp4" for c in range(rig.num_cameras)]
+    video = features_from_videos(videos, rig, VideoSettings(width=cfg.width, count=n))
+    t0 = time.perf_counter()
+    result = register(reference, video.features, settings=_settings(cfg), progress=progress)
+    seconds = time.perf_counter() - t0
+
+    # joints at markers: recovered against triangulated, in the calibration's world
+    world = torch.from_numpy(markers.positions[:n])[..., TRC_TO_WORLD].to(torch.float64)
+    fk = student_kinematics(result, reference)
+    roles = load_spec("pose2sim_21")
+    pairs = [
+        (markers.names.index(roles[role][0]), reference.skeleton.index(joint))
+        for role, joint in MARKER_JOINTS.items()
+        if len(roles.get(role, [])) == 1
+        and roles[role][0] in markers.names
+        and joint in reference.skeleton.names
+    ]
+    if not pairs:
+        raise ConfigError(f"{POSE2SIM_TRC}: no marker matches a joint of the reference")
+    m_idx, j_idx = zip(*pairs, strict=True)
+    dist = (fk.positions[:, list(j_idx)] - world[:, list(m_idx)]).norm(dim=-1)  # (T', M)
+    height = float((world[..., 2].amax(-1) - world[..., 2].amin(-1)).median())
+    e3d = dist.mean(-1) / height
+
+    names, rows = _read_mot(root / POSE2SIM_MOT)
+    coords = [c for c in OPENSIM_BENDS if c in names]
+    opensim = np.abs(rows[:n, [names.index(c) for c in coords]])
+    joints = [OPENSIM_BENDS[c] for c in coords]
+    student = _bends(reference, fk.positions, joints).numpy()
+    ref_fk = reference.body_frames(torch.arange(n))
+    own = _bends(reference, ref_fk.positions, joints).numpy()
+    metrics = {
+        "pose2sim_silhouette_iou_mean": float(result.fit.mean()),
+        "pose2sim_e3d_mean": float(e3d.mean()),
+        "pose2sim_c_err_mean": float((result.C[:n] - torch.arange(n)).abs().double().mean()),
+        "pose2sim_angle_err_deg_mean": float(np.nanmean(np.abs(student - opensim))),
+        "pose2sim_reference_angle_err_deg_mean": float(np.nanmean(np.abs(own - opensim))),
+        "pose2sim_G": float(result.G),
+        "pose2sim_sec": seconds,
+    }
+    note(f"pose2sim: joints compared with markers: {len(pairs)}; bends with OpenSim: {joints}")
+    return metrics, {
+        "pose2sim_iou": result.fit.numpy(),
+        "pose2sim_e3d": e3d.numpy(),
+        "pose2sim_c": result.C.numpy(),
+    }
+
+
+def run(cfg: RegisterRealConfig):
+    root = _data_root(cfg)
+    metrics: dict[str, float] = {}
+    columns: dict[str, np.ndarray] = {}
+    if "sports2d" in cfg.cases:
+        m, c = _sports2d(cfg, root)
+        metrics |= m
+        columns |= c
+    if "pose2sim" in cfg.cases:
+        m, c = _pose2sim(cfg, root)
+        metrics |= m
+        columns |= c
+    length = max(len(v) for v in columns.values())
+    table = {"frame": np.arange(length)}
+    for key, values in columns.items():
+        padded = np.full(length, np.nan)
+        padded[: len(values)] = values
+        table[key] = padded
+    return metrics, table, {"columns": table}
+
+
+def plot(path, data, title: str) -> None:
+    """Per-frame silhouette IoU of each case (and pose2sim's E_3D)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = data["columns"]
+    fig, ax = plt.subplots(figsize=(8, 3.4), dpi=100)
+    for key, label in (("sports2d_iou", "sports2d IoU"), ("pose2sim_iou", "pose2sim IoU")):
+        if key in c:
+            ax.plot(c["frame"], c[key], label=label)
+    if "pose2sim_e3d" in c:
+        ax.plot(c["frame"], c["pose2sim_e3d"] * 10, "--", label="pose2sim E3D x 10")
+    ax.set_xlabel("video frame")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
