@@ -137,6 +137,14 @@ def add_register_parser(sub) -> argparse.ArgumentParser:
         help="a picture of the empty scene (clean plate), one per --video in the same order "
         "(default: the background is learnt from the video itself)",
     )
+    p.add_argument(
+        "--keypoints",
+        type=Path,
+        action="append",
+        default=[],
+        help="2-D joints as an extra observation: an OpenPose JSON folder or a Sports2D TRC "
+        "per camera (repeat, in the --video order), or one folder of per-camera JSON folders",
+    )
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", default=[], help="key=value settings (listed below)")
@@ -153,6 +161,7 @@ def register_command(args: argparse.Namespace) -> int:
         tuple(args.overrides),
         args.person,
         tuple(args.background),
+        tuple(args.keypoints),
     )
     outcome = run_register(job, show_progress=not args.quiet)
     print("\n".join(summary_lines(outcome)))

@@ -44,6 +44,7 @@ from motion.registration.export import (
     write_mot,
     write_student_bvh,
 )
+from motion.registration.keypoints import attach_keypoints
 from motion.registration.pipeline import register
 from motion.registration.render import body_poses, points_in_view, side_by_side_frames
 from motion.registration.report import ReportInputs, write_report
@@ -80,6 +81,8 @@ class RegisterJob:
         overrides: ``key=value`` settings (after ``config``).
         person: ``(x, y)`` pixels near the person to follow in the first frame.
         backgrounds: a picture of each camera's empty scene (a clean plate), or none.
+        keypoints: 2-D joints from files, one folder or file per camera in the videos' order
+            (:func:`motion.registration.keypoints.attach_keypoints`), or none.
     """
 
     reference: Path
@@ -90,6 +93,7 @@ class RegisterJob:
     overrides: tuple[str, ...] = ()
     person: tuple[float, float] | None = None
     backgrounds: tuple[Path, ...] = ()
+    keypoints: tuple[Path, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -343,6 +347,9 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
         _check_durations(reference, *probed, slack=0.9)
     video = features_from_videos(job.videos, rig, cfg.video)
     _check_durations(reference, video.features.num_frames, video.features.frame_rate)
+    if job.keypoints:
+        source = job.keypoints[0] if len(job.keypoints) == 1 else list(job.keypoints)
+        video = attach_keypoints(video, source, reference)
     log = _log(show_progress)
     if video.note:
         log(video.note)

@@ -25,7 +25,9 @@ from motion.draw import write_video
 from motion.registration.config import ConfigError, RegisterConfig, load_config, override
 from motion.registration.export import load_registration
 from motion.registration.types import Reference
+from motion.synth import load_sequence
 from tests.motion.registration.conftest import REFERENCE, register_argv
+from tests.motion.registration.test_keypoints import _body25b, _write_trc
 
 ROBOT_ARM = REFERENCE.parent / "examples" / "robot_arm.bvh"
 
@@ -236,6 +238,9 @@ def bad(student_video, tmp_path_factory) -> dict[str, Path]:
     files["short_reference.bvh"] = write_bvh(
         dataclasses.replace(reference, motion=reference.motion[:60]), d / "short_reference.bvh"
     )
+    files["other_markers.trc"] = d / "other_markers.trc"
+    uv = np.random.default_rng(0).uniform(0, 90, (len(frames), 2, 2))  # pixels
+    _write_trc(files["other_markers.trc"], uv, ["Foo", "Bar"], 12.0)
     return files
 
 
@@ -247,6 +252,7 @@ def _argv(
     videos: list[Path] | None = None,
     calibration: Path | str | None = "default",
     backgrounds: list[Path] | None = None,
+    keypoints: list[Path] = (),
     extra: tuple[str, ...] = (),
 ) -> list[str]:
     argv = ["register", "--reference", str(reference)]
@@ -257,7 +263,19 @@ def _argv(
         argv += ["--calibration", str(calibration)]
     for b in [student.background] if backgrounds is None else backgrounds:
         argv += ["--background", str(b)]
+    for k in keypoints:
+        argv += ["--keypoints", str(k)]
     return [*argv, "--out", str(out), "--quiet", "refine.particles=12", "refine.band=4", *extra]
+
+
+#: the rest of the conftest's cheap settings (_argv gives the particles and the band)
+CHEAP_TAIL = (
+    "refine.iterations=1",
+    "refine.restarts=1",
+    "refine.rounds=1",
+    "video.background=median",
+    "video.threshold=12",
+)
 
 
 def _fail(*args, **kwargs):
@@ -358,6 +376,12 @@ BAD = {
         "short_reference.bvh",
         "the reference lasts 0.49 s but the video 2.67 s",
         False,
+    ),
+    "keypoints of another marker set": (
+        lambda s, b: {"keypoints": [b["other_markers.trc"]]},
+        "other_markers.trc",
+        "Foo, Bar",
+        True,
     ),
     "unknown setting": (
         lambda s, b: {"extra": ("refine.particlez=3",)},
@@ -621,3 +645,23 @@ def test_override_one_key():
     cfg = override(RegisterConfig(), "registration.refine.particles", 30)
     assert cfg.registration.refine.particles == 30
     assert cfg.registration.refine.iterations == RegisterConfig().registration.refine.iterations
+
+
+def test_keypoint_files_join_the_observation(student_video, tmp_path, capsys):
+    """--keypoints: OpenPose BODY_25B files of the video's true 2-D joints are read, matched
+    to the reference's joints, and said in the summary's notes."""
+    seq = load_sequence(student_video.folder)
+    folder = tmp_path / "cam1_json"
+    folder.mkdir()
+    names = seq.meta["joint_names"]
+    for f, uv in enumerate(seq.arrays["joints2d"][0]):
+        person = {"person_id": [-1], "pose_keypoints_2d": _body25b(uv, names)}
+        doc = {"version": 1.3, "people": [person]}
+        (folder / f"cam1.{f:04d}.json").write_text(json.dumps(doc))
+    out = tmp_path / "out"
+    assert main(_argv(student_video, out, keypoints=[folder], extra=CHEAP_TAIL)) == 0, (
+        capsys.readouterr()
+    )
+    notes = json.loads((out / "summary.json").read_text())["notes"]
+    assert "2-D keypoints from cam1_json" in notes["cameras"]
+    assert "LKnee=LeftLeg" in notes["cameras"] and "14 joints matched" in notes["cameras"]
