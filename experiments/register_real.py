@@ -16,12 +16,14 @@
   reference's own bend against OpenSim, ``pose2sim_reference_angle_err_deg_mean``, is the
   floor a skeleton fitted to the markers allows).
 
-Needs ``../shared/data``: skipped with a message when that default location is absent.
+Each case runs ``python -m motion register`` as a user would (:func:`motion.registration.
+command.run_register`), so ``out_dir/sports2d`` and ``out_dir/pose2sim`` hold its report,
+overlays and exports. Needs ``../shared/data``: skipped with a message when that default
+location is absent.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -30,16 +32,15 @@ import numpy as np
 import torch
 
 from experiments.config import ConfigError, ExperimentConfig, ExperimentSkipped
-from experiments.progress import note, progress
+from experiments.progress import note
 from experiments.stick_time import BUNDLED
 from motion.bodyparts import load_spec
 from motion.cameras import load_pose2sim_calibration
 from motion.keypoints import read_trc
-from motion.registration import Reference, RegistrationSettings, register
+from motion.registration import Reference, Registration
+from motion.registration.command import RegisterJob, run_register
 from motion.registration.export import joint_flexion, student_kinematics
 from motion.registration.markers import MARKER_JOINTS, reference_from_markers
-from motion.registration.refine import RefineSettings
-from motion.registration.video import VideoSettings, features_from_videos
 from motion.settings import setting
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -112,35 +113,39 @@ def _data_root(cfg: RegisterRealConfig) -> Path:
     )
 
 
-def _settings(cfg: RegisterRealConfig) -> RegistrationSettings:
-    refine = RefineSettings(
-        particles=cfg.particles,
-        iterations=cfg.iterations,
-        restarts=cfg.restarts,
-        band=min(12, (cfg.particles - 1) // 2),
+def _overrides(cfg: RegisterRealConfig) -> tuple[str, ...]:
+    band = min(12, (cfg.particles - 1) // 2)
+    return (
+        f"video.width={cfg.width}",
+        f"refine.particles={cfg.particles}",
+        f"refine.iterations={cfg.iterations}",
+        f"refine.restarts={cfg.restarts}",
+        f"refine.band={band}",
+        f"seed={cfg.seed}",
     )
-    return RegistrationSettings(refine=refine, seed=cfg.seed)
+
+
+def _register(cfg: RegisterRealConfig, job: RegisterJob) -> tuple[Registration, float]:
+    """``python -m motion register`` as a user runs it (every output and the report in
+    ``job.out``); returns the registration and its seconds (stages 0-3)."""
+    outcome = run_register(job, show_progress=False)
+    note(f"register_real: wrote {len(outcome.files)} files to {job.out}")
+    return outcome.registration, sum(outcome.registration.timings.values())
 
 
 def _sports2d(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
-    video = features_from_videos(
+    job = RegisterJob(
+        Path(cfg.reference),
         [root / SPORTS2D],
-        None,
-        VideoSettings(
-            width=cfg.width,
-            start=cfg.sports2d_start,
-            count=cfg.frames,
-            person=list(cfg.sports2d_person),
+        Path(cfg.out_dir) / "sports2d",
+        overrides=(
+            *_overrides(cfg),
+            f"video.start={cfg.sports2d_start}",
+            f"video.count={cfg.frames}",
         ),
+        person=tuple(cfg.sports2d_person),
     )
-    t0 = time.perf_counter()
-    result = register(
-        Reference.from_bvh(cfg.reference),
-        video.features,
-        settings=_settings(cfg),
-        progress=progress,
-    )
-    seconds = time.perf_counter() - t0
+    result, seconds = _register(cfg, job)
     metrics = {
         "sports2d_silhouette_iou_mean": float(result.fit.mean()),
         "sports2d_sec": seconds,
@@ -170,12 +175,15 @@ def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
     bvh.parent.mkdir(parents=True, exist_ok=True)
     reference = reference_from_markers(markers, out_bvh=bvh)
     n = min(cfg.frames, reference.num_frames)
-    rig = load_pose2sim_calibration(root / POSE2SIM_CALIBRATION)
-    videos = [root / POSE2SIM_VIDEOS / f"cam0{c + 1}.mp4" for c in range(rig.num_cameras)]
-    video = features_from_videos(videos, rig, VideoSettings(width=cfg.width, count=n))
-    t0 = time.perf_counter()
-    result = register(reference, video.features, settings=_settings(cfg), progress=progress)
-    seconds = time.perf_counter() - t0
+    cameras = load_pose2sim_calibration(root / POSE2SIM_CALIBRATION).num_cameras
+    job = RegisterJob(
+        bvh,
+        [root / POSE2SIM_VIDEOS / f"cam0{c + 1}.mp4" for c in range(cameras)],
+        Path(cfg.out_dir) / "pose2sim",
+        root / POSE2SIM_CALIBRATION,
+        overrides=(*_overrides(cfg), f"video.count={n}"),
+    )
+    result, seconds = _register(cfg, job)
 
     # joints at markers: recovered against triangulated, in the calibration's world
     world = torch.from_numpy(markers.positions[:n])[..., TRC_TO_WORLD].to(torch.float64)
