@@ -55,6 +55,8 @@ POSE2SIM_TRC = Path(
 POSE2SIM_MOT = Path(
     "keypoints/pose2sim_balancing_trial/opensim/S00_P00_T01_BalancingTrial_filt_butterworth_0-100_body25b.mot"
 )
+#: the trial's OpenPose detections, one folder per camera
+POSE2SIM_KEYPOINTS = Path("keypoints/pose2sim_balancing_trial/pose2d_openpose_body25b")
 #: OpenSim coordinate -> the skeleton joint whose bend it is (knee flexion, elbow flexion)
 OPENSIM_BENDS = {
     "knee_angle_r": "RightLeg",
@@ -72,7 +74,8 @@ class RegisterRealConfig(ExperimentConfig):
 
     TINY: ClassVar[dict] = {
         "frames": 8,
-        "width": 96,
+        "sports2d_width": 96,
+        "pose2sim_width": 96,
         "particles": 12,
         "iterations": 1,
         "restarts": 1,
@@ -91,8 +94,19 @@ class RegisterRealConfig(ExperimentConfig):
     sports2d_person: list[float] = setting(
         [1190.0, 660.0], "x,y pixel near the walker in that frame (sports2d)", length=2
     )
+    pose2sim_keypoints: bool = setting(
+        True,
+        "give the pose2sim case the trial's OpenPose BODY_25B 2-D keypoints as well (without "
+        "them a person standing in place can be registered facing backwards: silhouettes do "
+        "not tell front from back, and there is no walking direction to go by)",
+    )
     frames: int = setting(80, "video frames per case (pose2sim has 100)", ge=2)
-    width: int = setting(240, "working width of the videos, pixels", ge=32, le=4096)
+    sports2d_width: int = setting(
+        320, "working width of the sports2d video, pixels", ge=32, le=4096
+    )
+    pose2sim_width: int = setting(
+        240, "working width of the pose2sim videos (4 cameras), pixels", ge=32, le=4096
+    )
     particles: int = setting(60, "particles per part", ge=2)
     iterations: int = setting(4, "particle BP iterations per pass", ge=1)
     restarts: int = setting(1, "particle BP passes", ge=1)
@@ -113,10 +127,10 @@ def _data_root(cfg: RegisterRealConfig) -> Path:
     )
 
 
-def _overrides(cfg: RegisterRealConfig) -> tuple[str, ...]:
+def _overrides(cfg: RegisterRealConfig, width: int) -> tuple[str, ...]:
     band = min(12, (cfg.particles - 1) // 2)
     return (
-        f"video.width={cfg.width}",
+        f"video.width={width}",
         f"refine.particles={cfg.particles}",
         f"refine.iterations={cfg.iterations}",
         f"refine.restarts={cfg.restarts}",
@@ -139,7 +153,7 @@ def _sports2d(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
         [root / SPORTS2D],
         Path(cfg.out_dir) / "sports2d",
         overrides=(
-            *_overrides(cfg),
+            *_overrides(cfg, cfg.sports2d_width),
             f"video.start={cfg.sports2d_start}",
             f"video.count={cfg.frames}",
         ),
@@ -181,7 +195,8 @@ def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
         [root / POSE2SIM_VIDEOS / f"cam0{c + 1}.mp4" for c in range(cameras)],
         Path(cfg.out_dir) / "pose2sim",
         root / POSE2SIM_CALIBRATION,
-        overrides=(*_overrides(cfg), f"video.count={n}"),
+        overrides=(*_overrides(cfg, cfg.pose2sim_width), f"video.count={n}"),
+        keypoints=(root / POSE2SIM_KEYPOINTS,) if cfg.pose2sim_keypoints else (),
     )
     result, seconds = _register(cfg, job)
 
