@@ -419,33 +419,15 @@ def coarse_to_fine_align(
     robust: str | None = None,
     robust_scale: float = 2.0,
     threshold: float | None = None,
-    pool_stride: int = 1,
-    margin: float = 1.0,
 ) -> Alignment:
     """Monotone alignment of long sequences without the full T' x T cost matrix.
 
-    Levels: level ``l`` keeps every ``factor**l``-th video frame (its rows) and groups the
-    reference into cells of ``F = factor**l`` consecutive frames (which keeps the step bound
-    S in level units); the coarsest level (at most ``max_cells`` cells) is solved whole, each
-    finer one inside a band derived from the coarser solution, by a chain whose states are
-    sliding windows (:class:`pgm.BandedMonotoneFactor`).
-
-    * A cell's cost is the **minimum** of the costs of the reference frames it covers (at
-      the row's video frame), not one sample: a coarse cell never hides a good match, so a
-      periodic motion (a gait cycle shorter than a few cells) cannot alias, and the coarse
-      cost of the projection of any fine path is at most that path's cost on those rows.
-    * The band keeps every coarse cell on a coarse path whose cost is within ``margin`` of
-      the best (max-marginals, forward-backward max-product), i.e. it widens exactly where
-      the coarse level cannot tell alternatives apart (cycles of a periodic motion, a
-      stretch of bad frames), plus ``radius`` cells either side of the best coarse path.
-      Between two coarse rows it is the parallelogram that monotone paths through their
-      kept cells can reach.
-
-    Work: ``T'`` rows times the band's width per level (a cell of F frames costs F / g
-    evaluations, g = ``pool_stride``): ``O(T' (width) levels)`` cost evaluations, a small
-    fraction of ``T' x T`` where the coarse levels are unambiguous; only ambiguity widens it.
-    On smooth warps the result equals the full solution (tested), and on a long periodic
-    motion too (tested against the full chain).
+    Both sequences are subsampled by ``factor`` (which keeps the step bound S in coarse
+    units) until the problem has at most ``max_cells`` cells; that level is solved exactly by
+    :func:`chain_align`; each finer level is solved exactly inside a band of ``radius``
+    reference frames around the upsampled coarser path (a chain whose states are sliding
+    windows, :class:`pgm.BandedMonotoneFactor`). Cost: O(T' (2 radius + 1) S) per level.
+    On smooth warps the result equals the full solution (tested).
 
     Args:
         cost_fn: ``cost_fn(rows (R,), cols (R, W)) -> (R, W)`` costs of video frames ``rows``
@@ -453,9 +435,8 @@ def coarse_to_fine_align(
         num_video, num_ref: T' and T.
         max_step: S >= 1.
         factor: subsampling factor per level (>= 2).
-        radius: band half-width in cells around the upsampled coarser path at each level
-            (default ``factor * S``).
-        max_cells: solve directly once a level has at most this many cells.
+        radius: band half-width in reference frames at each level (default ``factor * S``).
+        max_cells: solve directly once ``T' * T`` is at most this.
         fix_start, fix_end: force C(0) = 0 / C(T'-1) = T-1.
         step_cost: optional ``(S + 1,)`` cost of each step size 0..S (a slope prior, e.g.
             :func:`slope_step_cost`), at every level: subsampling both sequences by the same
@@ -464,14 +445,8 @@ def coarse_to_fine_align(
             then divided by the threshold so costs lie in [0, 1].
         robust_scale, threshold: the threshold tau; by default ``robust_scale`` times the
             median over t' of each row's minimum at the coarsest level (the only full
-            matrix; with ``pool_stride=1`` its rows are the exact row minima of those frames).
-        pool_stride: a cell's minimum is taken over every g-th reference frame, g the largest
-            divisor of the cell size not above this (1: the exact minimum; ``>= factor**L``
-            samples one frame per cell, the classic subsampling, which aliases periodic
-            motion). Larger is cheaper when the cost is smooth over g reference frames.
-        margin: band threshold on a coarse path's excess cost, in units of tau (with
-            ``robust`` the truncation level, i.e. one outlier row; without, ``robust_scale``
-            times the median row minimum). 0 keeps only the best coarse path (and ties).
+            matrix; its row minima, over subsampled references, are slightly above the full
+            ones).
 
     Returns:
         :class:`Alignment` with ``path`` (1, T') and ``cost`` (1,): the sum of the (robust,
@@ -485,85 +460,25 @@ def coarse_to_fine_align(
     if factor < 2:
         raise AlignmentError(f"factor must be >= 2; got {factor}")
     radius = factor * max_step if radius is None else radius
-    if radius < 0:
-        raise AlignmentError(f"radius must be >= 0; got {radius}")
+    if radius < 1:
+        raise AlignmentError(f"radius must be >= 1; got {radius}")
     if robust not in (None, "truncate", "saturate"):
         raise AlignmentError(f"robust must be None, 'truncate' or 'saturate'; got {robust!r}")
     if not (robust_scale > 0 and math.isfinite(robust_scale)):
         raise AlignmentError(f"robust_scale must be a finite positive number; got {robust_scale}")
-    if isinstance(pool_stride, bool) or not isinstance(pool_stride, int) or pool_stride < 1:
-        raise AlignmentError(f"pool_stride must be an int >= 1; got {pool_stride!r}")
-    if not (margin >= 0 and math.isfinite(margin)):
-        raise AlignmentError(f"margin must be a finite number >= 0; got {margin}")
     if step_cost is not None:
         step_cost = _step_factor(max_step, step_cost).step_log_potential.neg()  # validated
     levels = _Levels(
-        cost_fn,
-        num_video,
-        num_ref,
-        max_step,
-        factor,
-        radius,
-        max_cells,
-        fix_start,
-        fix_end,
-        robust,
-        robust_scale,
-        step_cost,
-        pool_stride,
-        margin,
+        max_step, factor, radius, max_cells, fix_start, fix_end, robust, robust_scale, step_cost
     )
-    path, total = levels.solve(threshold)
+    path, total, _ = levels.solve(cost_fn, num_video, num_ref, threshold)
     return Alignment(path.unsqueeze(0), total.reshape(1))
-
-
-def _bucket(k: Tensor) -> Tensor:
-    """Round counts up to 3 significant bits (at most 12.5 % more), so rows of similar width
-    share one ``cost_fn`` call."""
-    bits = torch.floor(torch.log2(k.clamp_min(1).double())).long()
-    unit = torch.pow(2, (bits - 3).clamp_min(0))
-    return (k + unit - 1) // unit * unit
-
-
-def _banded_forward(unary: np.ndarray, shifts: np.ndarray, step_lp: np.ndarray) -> np.ndarray:
-    """Max-product forward messages of a banded monotone chain, including each node's unary.
-
-    Shapes: ``unary`` (N, W) log-potentials of node n's window ``offsets[n] + [0, W)``,
-    ``shifts`` (N-1,) ``offsets[n+1] - offsets[n] >= 0``, ``step_lp`` (S+1,). Float64 without
-    rescaling: scores are sums of N costs, far from float64's limits.
-    """
-    n, w = unary.shape
-    s = len(step_lp) - 1
-    alpha = unary.copy()
-    window_lp = step_lp[::-1].copy()  # window index k reads the source S - k positions back
-    work = np.full(s + w + int(max(0, *shifts.tolist())) if n > 1 else s + w, -np.inf)
-    windows = np.lib.stride_tricks.sliding_window_view(work, s + 1)
-    for t in range(1, n):
-        d = int(shifts[t - 1])
-        work[s : s + w] = alpha[t - 1]
-        alpha[t] += (windows[d : d + w] + window_lp).max(-1)
-    return alpha
-
-
-def _max_marginals(unary: np.ndarray, offsets: np.ndarray, step_lp: np.ndarray) -> np.ndarray:
-    """``(N, W)`` best score of a path through each state (forward + backward - unary)."""
-    shifts = np.diff(offsets)
-    alpha = _banded_forward(unary, shifts, step_lp)
-    # the backward pass is the forward pass of the reversed chain on the reversed axis
-    beta = _banded_forward(unary[::-1, ::-1].copy(), shifts[::-1].copy(), step_lp)[::-1, ::-1]
-    finite = np.isfinite(unary)
-    out = np.full_like(alpha, -np.inf)
-    out[finite] = alpha[finite] + beta[finite] - unary[finite]
-    return out
 
 
 @dataclass
 class _Levels:
-    """The settings :func:`coarse_to_fine_align` works with, and its level loop."""
+    """The settings :func:`coarse_to_fine_align` recurses with."""
 
-    cost_fn: CostFn
-    num_video: int
-    num_ref: int
     max_step: int
     factor: int
     radius: int
@@ -573,207 +488,70 @@ class _Levels:
     robust: str | None
     robust_scale: float
     step_cost: Tensor | None
-    pool_stride: int
-    margin: float
-    max_expand: int = 6
-    expand_bad: bool = True
-    double: int = 1
 
-    def scales(self) -> list[int]:
-        """Cell sizes F of the levels, finest (1) first: coarser until one fits max_cells."""
-        f, scales = self.factor, [1]
-        while True:
-            n = -(-self.num_video // scales[-1])
-            m = -(-self.num_ref // scales[-1])
-            if n * m <= self.max_cells or n < 2 * f or m < 2 * f:
-                return scales
-            scales.append(scales[-1] * f)
-
-    def shape(self, cost: Tensor, threshold: float | None) -> tuple[Tensor, float]:
-        """Robust, normalised costs; the threshold is fixed by the first (coarsest) call.
-        Without ``robust`` the threshold is still computed: it is the unit of ``margin``."""
+    def shape(self, cost: Tensor, threshold: float | None) -> tuple[Tensor, float | None]:
+        """Robust, normalised costs; the threshold is fixed by the first (coarsest) call."""
+        if self.robust is None:
+            return cost, None
         if threshold is None:
             row_min = cost.amin(-1)
-            finite = row_min[torch.isfinite(row_min)]
-            threshold = self.robust_scale * float(finite.median()) if len(finite) else 1.0
+            threshold = self.robust_scale * float(row_min[torch.isfinite(row_min)].median())
             threshold = max(threshold, torch.finfo(torch.float64).tiny)
-        if self.robust is None:
-            return cost, threshold
         return robust_cost(cost, threshold, self.robust) / threshold, threshold
 
-    def evaluate(self, scale: int, rows: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-        """``(R, W)`` costs of level cells ``lo..hi`` of level rows ``rows`` (``R``) in windows
-        ``lo + [0, W)`` (``+inf`` outside); row v is video frame ``v * scale``, cell j the
-        reference frames ``[j scale, (j + 1) scale)``, its cost their minimum on a grid of
-        stride g (the largest divisor of ``scale`` up to ``pool_stride``)."""
-        g = max(d for d in range(1, min(self.pool_stride, scale) + 1) if scale % d == 0)
-        width = int((hi - lo).max()) + 1 if len(rows) else 1
-        out = torch.full((len(rows), width), math.inf, dtype=torch.float64)
-        if not len(rows):
-            return out
-        first = lo * scale
-        last = torch.clamp((hi + 1) * scale, max=self.num_ref) - 1
-        bucket = _bucket((last - first) // g + 1)  # reference frames evaluated per row
-        for size in torch.unique(bucket).tolist():
-            sel = (bucket == size).nonzero().flatten()
-            frames = first[sel, None] + g * torch.arange(size)
-            frames = torch.minimum(frames, last[sel, None])  # padding repeats the last frame
-            cost = _evaluate(self.cost_fn, rows[sel] * scale, frames)
-            cell = frames // scale - lo[sel, None]
-            pooled = torch.full((len(sel), width), math.inf, dtype=torch.float64)
-            out[sel] = pooled.scatter_reduce_(1, cell, cost.double(), "amin")
-        return out
-
-    def extend(
-        self, scale: int, table: Tensor, lo: Tensor, hi: Tensor, new_lo: Tensor, new_hi: Tensor
-    ) -> Tensor:
-        """The costs of band ``[new_lo, new_hi]`` (containing ``[lo, hi]``, whose costs are
-        ``table``): only the new cells are evaluated."""
-        n = len(lo)
-        width = int((new_hi - new_lo).max()) + 1
-        out = torch.full((n, width), math.inf, dtype=torch.float64)
-        k = torch.arange(table.shape[1])
-        col = (lo - new_lo)[:, None] + k
-        valid = (k <= (hi - lo)[:, None]) & (col < width)
-        r = torch.arange(n)[:, None].expand_as(col)
-        out[r[valid], col[valid]] = table[valid]
-        for part_lo, part_hi, at in ((new_lo, lo - 1, 0), (hi + 1, new_hi, None)):
-            rows = (part_hi >= part_lo).nonzero().flatten()
-            if not len(rows):
-                continue
-            vals = self.evaluate(scale, rows, part_lo[rows], part_hi[rows])
-            start = torch.zeros_like(rows) if at == 0 else (hi + 1 - new_lo)[rows]
-            kk = torch.arange(vals.shape[1])
-            col = start[:, None] + kk
-            ok = kk <= (part_hi - part_lo)[rows, None]
-            rr = rows[:, None].expand_as(col)
-            out[rr[ok], col[ok]] = vals[ok]
-        return out
-
-    def band(
-        self, num_rows: int, num_cells: int, coarse: Tensor, keep_lo: Tensor, keep_hi: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Per-row cell range ``[lo, hi]`` at a level from the coarser level's best path and
-        kept cells (all in coarser cells): where monotone paths through kept cells of two
-        consecutive coarse rows can be, and ``radius`` cells around the interpolated path."""
-        f, s, r = self.factor, self.max_step, self.radius
-        v = torch.arange(num_rows)
-        i = v // f  # the coarse row at or before v
-        k = v - i * f  # rows since it
-        nc = len(coarse)
-        nxt = (i + 1).clamp(max=nc - 1)
-        has_next = i + 1 < nc
-        lo = keep_lo[i] * f
-        hi = (keep_hi[i] + 1) * f - 1 + s * k  # reachable from the kept cells at row i
-        lo_next = keep_lo[nxt] * f - s * (f - k)  # reaching the kept cells at row i + 1
-        hi_next = (keep_hi[nxt] + 1) * f - 1
-        lo = torch.where(has_next, torch.maximum(lo, lo_next), lo)
-        hi = torch.where(has_next, torch.minimum(hi, hi_next), hi)
-        # radius around the best coarse path, interpolated (past the last coarse row:
-        # continued with its last slope)
-        centre = coarse.double() * f
-        slope = float(centre[-1] - centre[-2]) / f if nc > 1 else 0.0
-        frac = k.double() / f
-        mid = torch.where(
-            has_next, centre[i] * (1 - frac) + centre[nxt] * frac, centre[i] + slope * k
-        )
-        mid = mid.round().long()
-        lo = torch.minimum(lo, mid - r)
-        hi = torch.maximum(hi, mid + r)
-        return self.hull(lo, hi, num_cells)
-
-    def hull(self, lo: Tensor, hi: Tensor, num_cells: int) -> tuple[Tensor, Tensor]:
-        """Clamp a band to the level, reach the fixed ends, and drop cells no monotone path
-        can use (``lo`` non-decreasing, ``hi`` non-decreasing from the end)."""
-        lo, hi = lo.clamp(0, num_cells - 1), hi.clamp(0, num_cells - 1)
-        if self.fix_start:
-            lo[0] = 0
-        if self.fix_end:
-            hi[-1] = num_cells - 1
-        lo = torch.cummax(lo, 0).values
-        hi = torch.cummin(hi.flip(0), 0).values.flip(0)
-        return lo, torch.maximum(hi, lo)
-
-    def solve(self, threshold: float | None) -> tuple[Tensor, Tensor]:
-        """Path ``(T',)`` and its cost, coarsest level first."""
-        scales = self.scales()
-        step_lp = (
-            np.zeros(self.max_step + 1)
-            if self.step_cost is None
-            else self.step_cost.double().neg().numpy()
-        )
-        coarse = keep_lo = keep_hi = None
-        for level in range(len(scales) - 1, -1, -1):
-            scale = scales[level]
-            n = -(-self.num_video // scale)
-            m = -(-self.num_ref // scale)
-            if coarse is None:
-                lo, hi = torch.zeros(n, dtype=torch.long), torch.full((n,), m - 1)
-            else:
-                lo, hi = self.band(n, m, coarse, keep_lo, keep_hi)
-            raw = self.evaluate(scale, torch.arange(n), lo, hi)
-            grow = max(self.radius, self.factor)
-            for attempt in range(self.max_expand + 1):
-                unary, cost, threshold = self.unary(raw, lo, hi, m, threshold)
-                path, offsets = self.map(unary, lo)
-                # a path on the band's edge may continue better outside: widen there
-                bad = raw.gather(-1, offsets[:, None])[:, 0] > threshold
-                if not self.expand_bad:
-                    bad = torch.zeros_like(bad)
-                touch_lo = ((path == lo) | bad) & (lo > 0)
-                touch_hi = ((path == hi) | bad) & (hi < m - 1)
-                if attempt == self.max_expand or not (touch_lo.any() or touch_hi.any()):
-                    break
-                reach = grow << (attempt * self.double)
-                new_lo = lo - reach * _dilate(touch_lo, reach)
-                new_hi = hi + reach * _dilate(touch_hi, reach)
-                new_lo, new_hi = self.hull(new_lo, new_hi, m)
-                raw = self.extend(scale, raw, lo, hi, new_lo, new_hi)
-                lo, hi = new_lo, new_hi
-            if level == 0:
-                return path, cost.gather(-1, offsets.unsqueeze(-1)).sum()
-            marg = _max_marginals(unary[0].numpy(), lo.numpy(), step_lp)
-            keep = torch.from_numpy(
-                marg >= marg.max() - self.margin * (1.0 if self.robust else threshold)
+    def solve(
+        self, cost_fn: CostFn, num_video: int, num_ref: int, threshold: float | None
+    ) -> tuple[Tensor, Tensor, float | None]:
+        """Path ``(T',)``, its cost, and the threshold used."""
+        f = self.factor
+        if num_video * num_ref <= self.max_cells or num_video < 2 * f or num_ref < 2 * f:
+            rows = torch.arange(num_video)
+            cols = torch.arange(num_ref).expand(num_video, num_ref)
+            cost, threshold = self.shape(_evaluate(cost_fn, rows, cols), threshold)
+            direct = chain_align(
+                cost,
+                self.max_step,
+                fix_start=self.fix_start,
+                fix_end=self.fix_end,
+                step_cost=self.step_cost,
             )
-            cols = torch.arange(keep.shape[1])
-            keep_lo = lo + torch.where(keep, cols, keep.shape[1]).amin(-1)
-            keep_hi = lo + torch.where(keep, cols, -1).amax(-1)
-            coarse = path
-        raise AssertionError("unreachable")
+            return direct.path[0], direct.cost[0], threshold
 
-    def unary(
-        self, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float | None
-    ) -> tuple[Tensor, Tensor, float]:
-        """``(1, N, W)`` log-potentials of a band (``-inf`` outside it and off fixed ends),
-        the shaped costs, and the threshold."""
-        _check_cost(raw)
-        cost, threshold = self.shape(raw, threshold)
-        cols = torch.arange(raw.shape[1])
-        unary = torch.where(cols <= (hi - lo)[:, None], -cost, -math.inf).unsqueeze(0)
+        vid_idx = torch.arange(0, num_video, f)
+        ref_idx = torch.arange(0, num_ref, f)
+
+        def coarse_fn(rows: Tensor, cols: Tensor) -> Tensor:
+            return cost_fn(vid_idx[rows], ref_idx[cols])
+
+        coarse_path, _, threshold = self.solve(coarse_fn, len(vid_idx), len(ref_idx), threshold)
+        centre = np.interp(
+            np.arange(num_video), vid_idx.numpy(), ref_idx[coarse_path].double().numpy()
+        )
+        # Past the last coarse sample, follow the coarse slope.
+        tail = np.arange(num_video) > int(vid_idx[-1])
+        if tail.any() and len(vid_idx) > 1:
+            slope = (centre[int(vid_idx[-1])] - centre[int(vid_idx[-2])]) / f
+            centre[tail] = centre[int(vid_idx[-1])] + slope * (
+                np.arange(num_video)[tail] - int(vid_idx[-1])
+            )
+        width = min(2 * self.radius + 1, num_ref)
+        lo = torch.from_numpy(np.round(centre)).long() - self.radius
+        lo = torch.cummax(lo.clamp(0, num_ref - width), 0).values
+        cols = lo[:, None] + torch.arange(width)
+        cost, threshold = self.shape(_evaluate(cost_fn, torch.arange(num_video), cols), threshold)
+        _check_cost(cost)
+        unary = -cost.unsqueeze(0)
         if self.fix_start:
-            unary[:, 0] = unary[:, 0].masked_fill(lo[0] + cols != 0, -math.inf)
+            unary[:, 0] = unary[:, 0].masked_fill(cols[0] != 0, -math.inf)
         if self.fix_end:
-            unary[:, -1] = unary[:, -1].masked_fill(lo[-1] + cols != m - 1, -math.inf)
-        return unary, cost, threshold
-
-    def map(self, unary: Tensor, lo: Tensor) -> tuple[Tensor, Tensor]:
-        """The best path in a band (absolute cells) and its window offsets."""
-        step = None if self.step_cost is None else -self.step_cost
-        banded = BandedMonotoneFactor(self.max_step, lo, step)
+            unary[:, -1] = unary[:, -1].masked_fill(cols[-1] != num_ref - 1, -math.inf)
+        step_lp = None if self.step_cost is None else -self.step_cost
+        banded = BandedMonotoneFactor(self.max_step, lo, step_lp)
         try:
-            result = chain_map(unary.clone(), banded, overwrite=True)
+            result = chain_map(unary, banded)
         except InfeasibleError as err:
             raise AlignmentError(
-                "no monotone path fits the band around the coarse path "
-                f"(T'={self.num_video}, T={self.num_ref}, max_step={self.max_step}, "
-                f"fix_start={self.fix_start}, fix_end={self.fix_end}); increase radius"
+                "no monotone path fits the band around the coarse path; increase radius"
             ) from err
         offsets = result.assignment[0]
-        return lo + offsets, offsets
-
-
-def _dilate(mask: Tensor, width: int) -> Tensor:
-    """``mask`` widened by ``width`` entries either side (long 0/1)."""
-    x = mask.double()[None, None]
-    return (torch.nn.functional.max_pool1d(x, 2 * width + 1, 1, width)[0, 0] > 0).long()
+        return lo + offsets, cost.gather(-1, offsets.unsqueeze(-1)).sum(), threshold
