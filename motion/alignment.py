@@ -419,15 +419,43 @@ def coarse_to_fine_align(
     robust: str | None = None,
     robust_scale: float = 2.0,
     threshold: float | None = None,
+    pool_stride: int | None = None,
+    margin: float = 0.0,
+    beam: int | None = None,
 ) -> Alignment:
     """Monotone alignment of long sequences without the full T' x T cost matrix.
 
-    Both sequences are subsampled by ``factor`` (which keeps the step bound S in coarse
-    units) until the problem has at most ``max_cells`` cells; that level is solved exactly by
-    :func:`chain_align`; each finer level is solved exactly inside a band of ``radius``
-    reference frames around the upsampled coarser path (a chain whose states are sliding
-    windows, :class:`pgm.BandedMonotoneFactor`). Cost: O(T' (2 radius + 1) S) per level.
-    On smooth warps the result equals the full solution (tested).
+    Level ``l`` keeps every ``F = factor**l``-th video frame as its rows and groups the
+    reference into cells of F consecutive frames (so the step bound S holds in cells); the
+    coarsest level is solved whole, each finer one exactly inside a band derived from the
+    coarser solution (a chain whose states are sliding windows,
+    :class:`pgm.BandedMonotoneFactor`). Three things keep a periodic motion (a gait cycle
+    of a few coarse cells) from aliasing:
+
+    * **Min-pooling.** A cell's cost is the minimum over the reference frames it covers (at
+      the row's video frame), not one sample of them, so a coarse cell never hides a good
+      match: for any fine path, the coarse path through the cells it visits costs at most
+      what the fine path costs on those rows. (Sampling one frame per cell, a cell size near
+      half a cycle makes the right phase invisible and a path shifted by cycles look best.)
+    * **Max-marginal band.** The next level's band covers every coarse cell on a coarse path
+      within ``margin`` of the best (forward-backward max-product), and between two coarse
+      rows everything monotone paths through those cells can reach, plus ``radius`` cells
+      around the interpolated best path. The band widens exactly where the coarse level
+      cannot tell alternatives apart.
+    * **Tracking.** A level whose rows are close enough for the step bound to fix a periodic
+      motion's rate (its coarser levels are not: every cycle looks alike there) extends its
+      band along its own best partial path (a forward pass in chunks of rows, ``beam`` cells
+      around where that path, continued at its recent slope, goes), so the band follows the
+      motion instead of forcing the path off phase where the motion drifts out of it.
+
+    Work: about ``T'`` times the band width cost evaluations per level (a cell of F frames
+    costs ``F / g`` evaluations, g the pooling stride), plus ``(T' / F_L) T / g`` at the
+    coarsest level L and ``2 T`` to choose g; the band widens only where a level is
+    ambiguous. Equal to the full solution on smooth warps, and on long periodic motion with
+    distinguishing features (``margin=1``) or the same optimal cost without them (tested
+    against the full chain). Measured on a 5-minute walk against a reference repeating one
+    gait loop (7,500 x 39,650): 0.6 % of the pairs, every frame in phase, the full chain's
+    cost; classic subsampling: 0.1 %, 39 % in phase.
 
     Args:
         cost_fn: ``cost_fn(rows (R,), cols (R, W)) -> (R, W)`` costs of video frames ``rows``
@@ -435,8 +463,11 @@ def coarse_to_fine_align(
         num_video, num_ref: T' and T.
         max_step: S >= 1.
         factor: subsampling factor per level (>= 2).
-        radius: band half-width in reference frames at each level (default ``factor * S``).
-        max_cells: solve directly once ``T' * T`` is at most this.
+        radius: band half-width in cells around the interpolated coarser path at each level
+            (default ``factor * S``).
+        max_cells: solve a level whole once that takes at most this many cost evaluations
+            (rows x pooled reference frames), or the next level would have fewer than
+            ``2 factor`` rows or cells.
         fix_start, fix_end: force C(0) = 0 / C(T'-1) = T-1.
         step_cost: optional ``(S + 1,)`` cost of each step size 0..S (a slope prior, e.g.
             :func:`slope_step_cost`), at every level: subsampling both sequences by the same
@@ -444,9 +475,21 @@ def coarse_to_fine_align(
         robust: ``"truncate"`` or ``"saturate"`` (see :func:`robust_cost`) at every level,
             then divided by the threshold so costs lie in [0, 1].
         robust_scale, threshold: the threshold tau; by default ``robust_scale`` times the
-            median over t' of each row's minimum at the coarsest level (the only full
-            matrix; its row minima, over subsampled references, are slightly above the full
-            ones).
+            median over t' of each row's minimum at the coarsest level (whose cells cover
+            every reference frame, so with a pooling stride of 1 these are true minima).
+        pool_stride: a cell's minimum is over every g-th reference frame, g the largest
+            divisor of the cell size up to this: 1 is the exact minimum; larger is cheaper
+            and fine when the cost changes little over that many frames; at least
+            ``factor**L`` samples one frame per cell, the classic (aliasing) subsampling.
+            ``None``: the largest power of 2 whose subsampling raises the minima of cells
+            with a plausible match by at most 5 % of tau on average, measured on two probe
+            rows against every reference frame.
+        margin: how much worse (in units of tau: with ``robust`` one truncated row) a coarse
+            path may be and still have its cells in the band. 0 keeps the best path only. A
+            margin of about 1 finds the full solution where cycles differ only slightly
+            (they tie at the coarse levels); but where cycles are identical (a reference that
+            repeats one loop) every cycle ties and the band grows towards the full matrix.
+        beam: tracking half-width in cells (default ``radius``); 0 turns tracking off.
 
     Returns:
         :class:`Alignment` with ``path`` (1, T') and ``cost`` (1,): the sum of the (robust,
@@ -466,19 +509,93 @@ def coarse_to_fine_align(
         raise AlignmentError(f"robust must be None, 'truncate' or 'saturate'; got {robust!r}")
     if not (robust_scale > 0 and math.isfinite(robust_scale)):
         raise AlignmentError(f"robust_scale must be a finite positive number; got {robust_scale}")
+    if pool_stride is not None and (
+        isinstance(pool_stride, bool) or not isinstance(pool_stride, int) or pool_stride < 1
+    ):
+        raise AlignmentError(f"pool_stride must be None or an int >= 1; got {pool_stride!r}")
+    if not (margin >= 0 and math.isfinite(margin)):
+        raise AlignmentError(f"margin must be a finite number >= 0; got {margin}")
+    beam = radius if beam is None else beam
+    if isinstance(beam, bool) or not isinstance(beam, int) or beam < 0:
+        raise AlignmentError(f"beam must be None or an int >= 0; got {beam!r}")
     if step_cost is not None:
         step_cost = _step_factor(max_step, step_cost).step_log_potential.neg()  # validated
     levels = _Levels(
-        max_step, factor, radius, max_cells, fix_start, fix_end, robust, robust_scale, step_cost
+        cost_fn,
+        num_video,
+        num_ref,
+        max_step,
+        factor,
+        radius,
+        max_cells,
+        fix_start,
+        fix_end,
+        robust,
+        robust_scale,
+        step_cost,
+        pool_stride,
+        margin,
+        beam,
     )
-    path, total, _ = levels.solve(cost_fn, num_video, num_ref, threshold)
+    path, total = levels.solve(threshold)
     return Alignment(path.unsqueeze(0), total.reshape(1))
+
+
+def _bucket(count: Tensor) -> Tensor:
+    """Counts rounded up to 3 significant bits (at most 12.5 % more): rows of similar
+    width share one ``cost_fn`` call."""
+    bits = torch.floor(torch.log2(count.clamp_min(1).double())).long()
+    unit = torch.pow(2, (bits - 3).clamp_min(0))
+    return (count + unit - 1) // unit * unit
+
+
+def _window_max(prev: np.ndarray, first: int, lo: int, width: int, window_lp: np.ndarray):
+    """``max_s prev[p - s] + step_lp[s]`` for positions ``p = lo .. lo + width - 1``, where
+    ``prev`` holds positions ``first ..`` (``-inf`` elsewhere) and ``window_lp`` is
+    ``step_lp`` reversed (window entry i is the source S - i positions back)."""
+    s = len(window_lp) - 1
+    work = np.full(width + s, -np.inf)  # positions lo - s .. lo + width - 1
+    a, b = max(first, lo - s), min(first + len(prev), lo + width)
+    if a < b:
+        work[a - lo + s : b - lo + s] = prev[a - first : b - first]
+    windows = np.lib.stride_tricks.sliding_window_view(work, s + 1)  # window k: p - S .. p
+    return (windows + window_lp).max(-1)
+
+
+def _banded_forward(unary: np.ndarray, offsets: np.ndarray, step_lp: np.ndarray) -> np.ndarray:
+    """Max-product forward scores of a banded monotone chain, each node's unary included.
+
+    Shapes: ``unary`` (N, W) log-potentials of node n's positions ``offsets[n] + [0, W)``,
+    ``offsets`` (N,) non-decreasing, ``step_lp`` (S + 1,). Float64 without rescaling: the
+    scores are sums of N costs, far from float64's limits.
+    """
+    alpha = unary.copy()
+    window_lp = step_lp[::-1].copy()
+    for t in range(1, len(alpha)):
+        prev = alpha[t - 1]
+        alpha[t] += _window_max(prev, offsets[t - 1], offsets[t], alpha.shape[1], window_lp)
+    return alpha
+
+
+def _max_marginals(unary: np.ndarray, offsets: np.ndarray, step_lp: np.ndarray) -> np.ndarray:
+    """``(N, W)`` score of the best path through each state: forward + backward - unary."""
+    alpha = _banded_forward(unary, offsets, step_lp)
+    # the backward pass is the forward pass of the chain reversed in time and position
+    last = offsets + unary.shape[1] - 1
+    beta = _banded_forward(unary[::-1, ::-1].copy(), -last[::-1], step_lp)[::-1, ::-1]
+    finite = np.isfinite(unary)
+    out = np.full_like(alpha, -np.inf)
+    out[finite] = alpha[finite] + beta[finite] - unary[finite]
+    return out
 
 
 @dataclass
 class _Levels:
-    """The settings :func:`coarse_to_fine_align` recurses with."""
+    """The settings :func:`coarse_to_fine_align` works with, and its level loop."""
 
+    cost_fn: CostFn
+    num_video: int
+    num_ref: int
     max_step: int
     factor: int
     radius: int
@@ -488,70 +605,303 @@ class _Levels:
     robust: str | None
     robust_scale: float
     step_cost: Tensor | None
+    pool_stride: int | None
+    margin: float
+    beam: int
+    chunk: int = 16  # rows per tracking step
 
-    def shape(self, cost: Tensor, threshold: float | None) -> tuple[Tensor, float | None]:
-        """Robust, normalised costs; the threshold is fixed by the first (coarsest) call."""
-        if self.robust is None:
-            return cost, None
+    def estimate_stride(self, threshold: float | None, tolerance: float = 0.05) -> int:
+        """The coarsest pooling grid that loses little. Two probe rows (the video frames at
+        1/4 and 3/4) are evaluated against every reference frame; for g = 2, 4, 8, ... the
+        minimum over every g-th frame of a cell of 4 g frames (each phase of that grid) is
+        compared with the cell's true minimum, on the cells holding a plausible match (true
+        minimum below tau, at least 4 of them); the largest g whose mean excess is at most
+        ``tolerance`` tau is taken (1 if none)."""
+        rows = torch.tensor(sorted({self.num_video // 4, 3 * self.num_video // 4}))
+        cols = torch.arange(self.num_ref).expand(len(rows), -1)
+        raw = _evaluate(self.cost_fn, rows, cols).double()
+        tau = threshold
+        if tau is None:
+            row_min = raw.amin(-1)
+            row_min = row_min[torch.isfinite(row_min)]
+            tau = self.robust_scale * float(row_min.median()) if len(row_min) else 1.0
+        shaped = raw.clamp(max=max(tau, torch.finfo(torch.float64).tiny)) / tau
+        g = 1
+        while 8 * g <= self.num_ref:
+            cand, cell = 2 * g, 8 * g
+            cells = shaped[:, : self.num_ref // cell * cell].unflatten(-1, (-1, cell))
+            exact = cells.amin(-1)
+            plausible = exact < 1
+            # every phase of the grid: a loop of a multiple of g frames would otherwise put
+            # the best frame of every cycle on the grid or off it, by luck
+            excess = sum(cells[..., o::cand].amin(-1) - exact for o in range(cand)) / cand
+            if plausible.sum() < 4 or float(excess[plausible].mean()) > tolerance:
+                break
+            g = cand
+        return g
+
+    def stride(self, scale: int) -> int:
+        """The pooling grid's stride at a level: the largest divisor of ``scale`` up to
+        ``pool_stride``."""
+        return max(d for d in range(1, min(self.pool_stride, scale) + 1) if scale % d == 0)
+
+    def scales(self) -> list[int]:
+        """Cell sizes F of the levels, finest (1) first: coarser while solving a level whole
+        takes more than ``max_cells`` cost evaluations (rows x pooled reference frames) and
+        the next level would still have ``2 factor`` rows and cells."""
+        f, scales = self.factor, [1]
+        while True:
+            scale = scales[-1]
+            n, m = -(-self.num_video // scale), -(-self.num_ref // scale)
+            if n * -(-self.num_ref // self.stride(scale)) <= self.max_cells:
+                return scales
+            if -(-n // f) < 2 * f or -(-m // f) < 2 * f:
+                return scales
+            scales.append(scale * f)
+
+    def shape(self, cost: Tensor, threshold: float | None) -> tuple[Tensor, float]:
+        """Robust, normalised costs; the threshold is fixed by the first (coarsest) call.
+        Without ``robust`` it is computed all the same: it is the unit of ``margin``."""
         if threshold is None:
             row_min = cost.amin(-1)
-            threshold = self.robust_scale * float(row_min[torch.isfinite(row_min)].median())
+            finite = row_min[torch.isfinite(row_min)]
+            threshold = self.robust_scale * float(finite.median()) if len(finite) else 1.0
             threshold = max(threshold, torch.finfo(torch.float64).tiny)
+        if self.robust is None:
+            return cost, threshold
         return robust_cost(cost, threshold, self.robust) / threshold, threshold
 
-    def solve(
-        self, cost_fn: CostFn, num_video: int, num_ref: int, threshold: float | None
-    ) -> tuple[Tensor, Tensor, float | None]:
-        """Path ``(T',)``, its cost, and the threshold used."""
-        f = self.factor
-        if num_video * num_ref <= self.max_cells or num_video < 2 * f or num_ref < 2 * f:
-            rows = torch.arange(num_video)
-            cols = torch.arange(num_ref).expand(num_video, num_ref)
-            cost, threshold = self.shape(_evaluate(cost_fn, rows, cols), threshold)
-            direct = chain_align(
-                cost,
-                self.max_step,
-                fix_start=self.fix_start,
-                fix_end=self.fix_end,
-                step_cost=self.step_cost,
+    def evaluate(self, scale: int, rows: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        """``(R, W)`` costs of cells ``lo..hi`` of level rows ``rows`` in windows
+        ``lo + [0, W)`` (``+inf`` outside; rows with ``hi < lo`` are empty). Row v is video
+        frame ``v * scale``; cell j is reference frames ``[j scale, (j + 1) scale)`` and costs
+        their minimum on a grid of stride g (the largest divisor of ``scale`` up to
+        ``pool_stride``)."""
+        g = self.stride(scale)
+        width = max(1, int((hi - lo).max()) + 1) if len(rows) else 1
+        out = torch.full((len(rows), width), math.inf, dtype=torch.float64)
+        first = lo * scale
+        last = torch.clamp((hi + 1) * scale, max=self.num_ref) - 1
+        bucket = _bucket((last - first) // g + 1)  # reference frames evaluated per row
+        bucket[hi < lo] = 0
+        for size in torch.unique(bucket[bucket > 0]).tolist():
+            sel = (bucket == size).nonzero().flatten()
+            frames = first[sel, None] + g * torch.arange(size)
+            frames = torch.minimum(frames, last[sel, None])  # padding repeats the last frame
+            cost = _evaluate(self.cost_fn, rows[sel] * scale, frames).double()
+            pooled = torch.full((len(sel), width), math.inf, dtype=torch.float64)
+            out[sel] = pooled.scatter_reduce_(1, frames // scale - lo[sel, None], cost, "amin")
+        return out
+
+    def band(
+        self, num_rows: int, num_cells: int, coarse: Tensor, keep_lo: Tensor, keep_hi: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Cells ``[lo, hi]`` per row of a level from the coarser level's best path and kept
+        cells (in coarser cells): where monotone paths through the kept cells of the two
+        coarse rows around a row can be, and ``radius`` cells around the interpolated path."""
+        f, s, r = self.factor, self.max_step, self.radius
+        v = torch.arange(num_rows)
+        i = v // f  # the coarse row at or before v
+        k = v - i * f  # rows since it
+        nxt = (i + 1).clamp(max=len(coarse) - 1)
+        has_next = i + 1 < len(coarse)
+        lo = keep_lo[i] * f
+        hi = (keep_hi[i] + 1) * f - 1 + s * k  # reachable from the kept cells of row i
+        lo_next = keep_lo[nxt] * f - s * (f - k)  # reaching the kept cells of row i + 1
+        hi_next = (keep_hi[nxt] + 1) * f - 1
+        lo = torch.where(has_next, torch.maximum(lo, lo_next), lo)
+        hi = torch.where(has_next, torch.minimum(hi, hi_next), hi)
+        # radius around the best path, interpolated (past the last coarse row: continued
+        # at its last slope)
+        centre = coarse.double() * f
+        slope = float(centre[-1] - centre[-2]) / f if len(coarse) > 1 else 0.0
+        frac = k.double() / f
+        mid = (
+            torch.where(
+                has_next, centre[i] * (1 - frac) + centre[nxt] * frac, centre[i] + slope * k
             )
-            return direct.path[0], direct.cost[0], threshold
-
-        vid_idx = torch.arange(0, num_video, f)
-        ref_idx = torch.arange(0, num_ref, f)
-
-        def coarse_fn(rows: Tensor, cols: Tensor) -> Tensor:
-            return cost_fn(vid_idx[rows], ref_idx[cols])
-
-        coarse_path, _, threshold = self.solve(coarse_fn, len(vid_idx), len(ref_idx), threshold)
-        centre = np.interp(
-            np.arange(num_video), vid_idx.numpy(), ref_idx[coarse_path].double().numpy()
+            .round()
+            .long()
         )
-        # Past the last coarse sample, follow the coarse slope.
-        tail = np.arange(num_video) > int(vid_idx[-1])
-        if tail.any() and len(vid_idx) > 1:
-            slope = (centre[int(vid_idx[-1])] - centre[int(vid_idx[-2])]) / f
-            centre[tail] = centre[int(vid_idx[-1])] + slope * (
-                np.arange(num_video)[tail] - int(vid_idx[-1])
-            )
-        width = min(2 * self.radius + 1, num_ref)
-        lo = torch.from_numpy(np.round(centre)).long() - self.radius
-        lo = torch.cummax(lo.clamp(0, num_ref - width), 0).values
-        cols = lo[:, None] + torch.arange(width)
-        cost, threshold = self.shape(_evaluate(cost_fn, torch.arange(num_video), cols), threshold)
-        _check_cost(cost)
-        unary = -cost.unsqueeze(0)
+        return self.hull(torch.minimum(lo, mid - r), torch.maximum(hi, mid + r), num_cells)
+
+    def hull(self, lo: Tensor, hi: Tensor, num_cells: int) -> tuple[Tensor, Tensor]:
+        """A band clamped to the level and reaching fixed ends, without cells no monotone
+        path can use (``lo`` non-decreasing; ``hi`` non-decreasing from the end)."""
+        lo, hi = lo.clamp(0, num_cells - 1), hi.clamp(0, num_cells - 1)
         if self.fix_start:
-            unary[:, 0] = unary[:, 0].masked_fill(cols[0] != 0, -math.inf)
+            lo[0] = 0
         if self.fix_end:
-            unary[:, -1] = unary[:, -1].masked_fill(cols[-1] != num_ref - 1, -math.inf)
-        step_lp = None if self.step_cost is None else -self.step_cost
-        banded = BandedMonotoneFactor(self.max_step, lo, step_lp)
-        try:
-            result = chain_map(unary, banded)
-        except InfeasibleError as err:
-            raise AlignmentError(
-                "no monotone path fits the band around the coarse path; increase radius"
-            ) from err
-        offsets = result.assignment[0]
-        return lo + offsets, cost.gather(-1, offsets.unsqueeze(-1)).sum(), threshold
+            hi[-1] = num_cells - 1
+        lo = torch.cummax(lo, 0).values
+        hi = torch.cummin(hi.flip(0), 0).values.flip(0)
+        return lo, torch.maximum(hi, lo)
+
+    def track(
+        self, scale: int, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The band ``[lo, hi]`` (costs ``raw``) extended along this level's best partial
+        path: a forward pass over chunks of ``chunk`` rows; before each chunk the best
+        partial path's end is continued at the slope it had over the last chunk, and the
+        chunk's rows get ``beam`` cells either side of that line. Returns the new band and
+        its costs (only the new cells are evaluated)."""
+        n, s, r, h = len(lo), self.max_step, self.beam, self.chunk
+        window_lp = self.step_lp()[::-1].copy()
+        lo_np, hi_np = lo.numpy(), hi.numpy()
+        width0 = hi_np - lo_np + 1
+        inside = np.arange(raw.shape[1]) < width0[:, None]
+        unary0 = np.where(inside, -self.shape(raw, threshold)[0].numpy(), -np.inf)
+        raw_np = raw.numpy()
+        new_lo, new_hi = lo_np.copy(), hi_np.copy()
+        tables: list[tuple[int, np.ndarray]] = []  # (first row, raw costs over the new band)
+        grown = False
+        alpha = prev_lo = None
+        slope = 0.0
+        for v0 in range(0, n, h):
+            v1 = min(n, v0 + h)
+            rows = np.arange(v0, v1)
+            if v0 > 0:
+                best = prev_lo + int(alpha.argmax())
+                c = np.round(best + slope * (rows - v0 + 1)).astype(np.int64)
+                # only where that line comes within beam / 2 of the band's edge
+                near_lo = c - r // 2 < lo_np[rows]
+                near_hi = c + r // 2 > hi_np[rows]
+                nlo = np.where(near_lo, np.minimum(lo_np[rows], c - r), lo_np[rows])
+                nlo = np.maximum(nlo, new_lo[v0 - 1])
+                new_lo[rows] = np.maximum.accumulate(np.clip(nlo, 0, m - 1))
+                nhi = np.where(near_hi, np.maximum(hi_np[rows], c + r), hi_np[rows])
+                # and no higher than the previous row's band lets a step reach
+                reach = np.minimum.accumulate(
+                    np.append(new_hi[v0 - 1], nhi) - s * np.arange(len(rows) + 1)
+                )[1:] + s * np.arange(1, len(rows) + 1)
+                new_hi[rows] = np.clip(reach, new_lo[rows], m - 1)
+            nlo, nhi = new_lo[rows], new_hi[rows]
+            width = int((nhi - nlo).max()) + 1
+            shift = lo_np[rows] - nlo  # where the coarse band starts in the new windows
+            cols = shift[:, None] + np.arange(raw.shape[1])
+            keep = inside[rows] & (cols < width)
+            rr = np.broadcast_to(np.arange(len(rows))[:, None], cols.shape)
+            raw_c = np.full((len(rows), width), np.inf)
+            raw_c[rr[keep], cols[keep]] = raw_np[rows][keep]
+            unary = np.full((len(rows), width), -np.inf)
+            unary[rr[keep], cols[keep]] = unary0[rows][keep]
+            # the new cells: left of the coarse band, then right of it, in one call
+            part_lo = np.concatenate([nlo, np.maximum(hi_np[rows] + 1, nlo)])
+            part_hi = np.concatenate([np.minimum(lo_np[rows] - 1, nhi), nhi])
+            start = np.concatenate([np.zeros_like(nlo), hi_np[rows] + 1 - nlo])
+            sel = np.nonzero(part_hi >= part_lo)[0]
+            if len(sel):
+                grown = True
+                got = self.evaluate(
+                    scale,
+                    torch.from_numpy(np.concatenate([rows, rows])[sel]),
+                    torch.from_numpy(part_lo[sel]),
+                    torch.from_numpy(part_hi[sel]),
+                )
+                shaped = -self.shape(got, threshold)[0].numpy()
+                k = np.arange(got.shape[1])
+                ok = k[None] <= (part_hi - part_lo)[sel, None]
+                cc = start[sel, None] + k
+                ri = np.broadcast_to(sel[:, None] % len(rows), cc.shape)
+                raw_c[ri[ok], cc[ok]] = got.numpy()[ok]
+                unary[ri[ok], cc[ok]] = shaped[ok]
+            tables.append((v0, raw_c))
+            if v0 == 0:
+                if self.fix_start:
+                    unary[0, nlo[0] + np.arange(width) != 0] = -np.inf
+                alpha = unary[0]
+            else:
+                alpha = unary[0] + _window_max(alpha, prev_lo, int(nlo[0]), width, window_lp)
+            slope = 0.0
+            if len(rows) > 1:  # the fused sweep of pgm.BandedMonotoneFactor.viterbi
+                shifts = np.diff(nlo)
+                work = np.full(s + width + int(shifts.max()), -np.inf)
+                windows = np.lib.stride_tricks.sliding_window_view(work, s + 1)
+                back = np.empty((len(rows), width), dtype=np.int64)
+                for t in range(1, len(rows)):
+                    d = int(shifts[t - 1])
+                    work[s : s + width] = alpha
+                    cand = windows[d : d + width] + window_lp
+                    back[t] = cand.argmax(-1)
+                    alpha = unary[t] + cand.max(-1)
+                # the slope of the best partial path over this chunk (backtracked)
+                j = int(alpha.argmax())
+                for t in range(len(rows) - 1, 0, -1):
+                    j += int(nlo[t] - nlo[t - 1]) - (s - int(back[t, j]))
+                slope = float(
+                    np.clip((alpha.argmax() + nlo[-1] - j - nlo[0]) / (len(rows) - 1), 0, s)
+                )
+            prev_lo = int(nlo[-1])
+        if not grown:
+            return lo, hi, raw
+        table = torch.full((n, int((new_hi - new_lo).max()) + 1), math.inf, dtype=torch.float64)
+        for v0, raw_c in tables:
+            table[v0 : v0 + len(raw_c), : raw_c.shape[1]] = torch.from_numpy(raw_c)
+        return torch.from_numpy(new_lo), torch.from_numpy(new_hi), table
+
+    def step_lp(self) -> np.ndarray:
+        """``(S + 1,)`` log-potential of each step size."""
+        if self.step_cost is None:
+            return np.zeros(self.max_step + 1)
+        return self.step_cost.double().neg().numpy()
+
+    def unary(
+        self, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float | None
+    ) -> tuple[Tensor, Tensor, float]:
+        """``(1, N, W)`` log-potentials of a band (``-inf`` outside it and off fixed ends),
+        the shaped costs and the threshold."""
+        _check_cost(raw)
+        cost, threshold = self.shape(raw, threshold)
+        cols = torch.arange(raw.shape[1])
+        unary = torch.where(cols <= (hi - lo)[:, None], -cost, -math.inf).unsqueeze(0)
+        if self.fix_start:
+            unary[:, 0] = unary[:, 0].masked_fill(lo[0] + cols != 0, -math.inf)
+        if self.fix_end:
+            unary[:, -1] = unary[:, -1].masked_fill(lo[-1] + cols != m - 1, -math.inf)
+        return unary, cost, threshold
+
+    def solve(self, threshold: float | None) -> tuple[Tensor, Tensor]:
+        """Path ``(T',)`` and its cost, coarsest level first."""
+        if self.pool_stride is None:
+            self.pool_stride = 1
+            if self.num_video * self.num_ref > self.max_cells:  # not solved whole
+                self.pool_stride = self.estimate_stride(threshold)
+        scales = self.scales()
+        coarse = keep_lo = keep_hi = None
+        for level in range(len(scales) - 1, -1, -1):
+            scale = scales[level]
+            n = -(-self.num_video // scale)
+            m = -(-self.num_ref // scale)
+            if coarse is None:
+                lo, hi = torch.zeros(n, dtype=torch.long), torch.full((n,), m - 1)
+            else:
+                lo, hi = self.band(n, m, coarse, keep_lo, keep_hi)
+            raw = self.evaluate(scale, torch.arange(n), lo, hi)
+            if coarse is not None and self.beam > 0:
+                lo, hi, raw = self.track(scale, raw, lo, hi, m, threshold)
+            unary, cost, threshold = self.unary(raw, lo, hi, m, threshold)
+            step = None if self.step_cost is None else -self.step_cost
+            try:
+                result = chain_map(
+                    unary.clone(), BandedMonotoneFactor(self.max_step, lo, step), overwrite=True
+                )
+            except InfeasibleError as err:
+                raise AlignmentError(
+                    "no monotone path fits the band around the coarse path "
+                    f"(T'={self.num_video}, T={self.num_ref}, max_step={self.max_step}, "
+                    f"fix_start={self.fix_start}, fix_end={self.fix_end}); increase radius"
+                ) from err
+            offsets = result.assignment[0]
+            coarse = lo + offsets
+            if level == 0:
+                return coarse, cost.gather(-1, offsets.unsqueeze(-1)).sum()
+            keep_lo = keep_hi = coarse
+            if self.margin > 0:
+                marg = _max_marginals(unary[0].numpy(), lo.numpy(), self.step_lp())
+                keep = torch.from_numpy(
+                    marg >= marg.max() - self.margin * (1.0 if self.robust else threshold)
+                )
+                cols = torch.arange(keep.shape[1])
+                keep_lo = lo + torch.where(keep, cols, keep.shape[1]).amin(-1)
+                keep_hi = lo + torch.where(keep, cols, -1).amax(-1)
+        raise AssertionError("unreachable")

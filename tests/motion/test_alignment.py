@@ -2,6 +2,7 @@
 
 import itertools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -25,6 +26,15 @@ def _monotone_paths(n, k, s):
         steps = np.diff(path)
         if ((steps >= 0) & (steps <= s)).all():
             yield path
+
+
+def _monotone_paths_by_steps(n, k, s):
+    """Every monotone path (steps 0..s) of n nodes over k states, built step by step."""
+    for start in range(k):
+        for steps in itertools.product(range(s + 1), repeat=n - 1):
+            path = start + np.concatenate([[0], np.cumsum(steps)])
+            if path[-1] < k:
+                yield tuple(int(c) for c in path)
 
 
 def _brute_dtw(cost):
@@ -262,6 +272,165 @@ def test_coarse_to_fine_robust_with_slope_prior_equals_the_full_robust_chain(mod
         coarse_to_fine_align(fn, num_video, num_ref, 10, robust="clip")
 
 
+def _counting(cost_fn):
+    """``cost_fn`` and a list whose sum is the number of (t', t) pairs it was asked for."""
+    calls = []
+
+    def counted(rows, cols):
+        calls.append(cols.numel())
+        return cost_fn(rows, cols)
+
+    return counted, calls
+
+
+def _gait_problem(seed, drift, num_video=600, period=60.0):
+    """A long periodic motion: reference features = phase sine/cosine and second harmonic of a
+    60-frame cycle (a gait loop; 50 cycles), plus ``drift`` times a slow feature over the whole
+    reference (0: every cycle identical, like a reference that repeats one loop); the video
+    is the reference through a smooth monotone warp whose speed varies by +-50 % (2.3 to 6.8
+    reference frames per video frame), plus noise. Returns features, the true C, the period.
+    """
+    g = torch.Generator().manual_seed(seed)
+    num_ref = 5 * num_video
+    t = torch.arange(num_ref, dtype=torch.float64)
+    phase = 2 * math.pi * t / period
+    slow = drift * torch.sin(2 * math.pi * t / num_ref + 1.0)
+    ref = torch.stack([phase.sin(), phase.cos(), 0.5 * (2 * phase).sin(), slow], 1)
+    u = torch.linspace(0, 1, num_video, dtype=torch.float64)
+    warp = (u + 0.08 * torch.sin(2 * math.pi * u)) * 0.9 * (num_ref - 1)
+    true = torch.cummax(warp.round().long().clamp(0, num_ref - 1), 0).values
+    video = ref[true] + 0.05 * torch.randn(num_video, 4, generator=g, dtype=torch.float64)
+    return video, ref, true, period
+
+
+def _gait_alignments(seed, drift, **kwargs):
+    """The robust chain with a slope prior, on the full matrix and coarse-to-fine as stage 1
+    calls it (factor 4, radius S + 4, max_cells 2000 -> 4 levels, coarsest cells of 64
+    reference frames, longer than the 60-frame cycle). Returns full, c2f, evaluated pairs,
+    T' T, true C, period."""
+    video, ref, true, period = _gait_problem(seed, drift)
+    num_video, num_ref, s = len(video), len(ref), 10
+    fn = sequence_cost_fn(video, ref)
+    cost = fn(torch.arange(num_video), torch.arange(num_ref).expand(num_video, -1))
+    tau = 2.0 * float(cost.amin(-1).median())
+    prior = slope_step_cost(s, 0.9 * (num_ref - 1) / (num_video - 1), 0.02).double()
+    full = chain_align(robust_cost(cost, tau) / tau, s, step_cost=prior)
+    counted, calls = _counting(fn)
+    c2f = coarse_to_fine_align(
+        counted,
+        num_video,
+        num_ref,
+        s,
+        radius=s + 4,
+        max_cells=2000,
+        step_cost=prior,
+        robust="truncate",
+        threshold=tau,
+        **kwargs,
+    )
+    return full, c2f, sum(calls), num_video * num_ref, true, period
+
+
+def _in_phase(path, true, period):
+    """Fraction of frames within 5 reference frames of the truth modulo the cycle."""
+    err = (path - true).double().remainder(period)
+    return float((torch.minimum(err, period - err) <= 5).double().mean())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_coarse_to_fine_on_a_loop_reaches_the_full_chains_optimum(seed):
+    """Every cycle of the reference identical (a reference that repeats one loop): paths a
+    whole number of cycles apart tie, so the full chain's path is one of many optima; the
+    coarse-to-fine path must be another one: in phase everywhere and at the full chain's
+    cost, up to 1 (one truncated pair; the ties are broken by noise on a few frames).
+    Classic subsampling (one sample per coarse cell, no tracking) aliases the cycle."""
+    full, c2f, evaluated, cells, true, period = _gait_alignments(seed, 0.0)
+    assert _in_phase(full.path[0], true, period) == 1.0
+    assert _in_phase(c2f.path[0], true, period) == 1.0
+    assert float(c2f.cost) <= float(full.cost) + 1.0
+    assert evaluated < 0.12 * cells  # here ~8 %; a 7,500 x 40,000 walk: 0.6 %
+    _, old, old_evaluated, _, _, _ = _gait_alignments(seed, 0.0, pool_stride=10**6, beam=0)
+    assert _in_phase(old.path[0], true, period) < 0.75
+    assert float(old.cost) > float(full.cost) + 50.0
+    assert old_evaluated < evaluated
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_coarse_to_fine_on_distinct_cycles_equals_the_full_chain(seed):
+    """Cycles told apart only by a slow feature (the full chain finds the true warp): with
+    margin 1 the band keeps every coarse alternative within one truncated pair of the best,
+    and coarse-to-fine finds exactly the full chain's path. Classic subsampling is lost by
+    whole cycles, and off phase on much of the video."""
+    full, c2f, evaluated, cells, true, period = _gait_alignments(seed, 0.3, margin=1.0)
+    assert (full.path[0] - true).abs().max() <= 2
+    assert torch.equal(c2f.path, full.path)
+    torch.testing.assert_close(c2f.cost, full.cost)
+    assert evaluated < 0.2 * cells  # here ~14 %
+    _, old, _, _, _, _ = _gait_alignments(seed, 0.3, pool_stride=10**6, beam=0)
+    assert (old.path[0] - full.path[0]).abs().max() > period
+    assert _in_phase(old.path[0], true, period) < 0.8
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coarse_to_fine_with_a_wide_margin_is_the_brute_force_optimum(seed):
+    """Random costs on a small grid, two levels (factor 2): with a margin that keeps every
+    coarse cell the band is everything monotone paths can reach, so coarse-to-fine (pooling,
+    band, tracking, fixed ends, slope prior) must find the brute-force best path."""
+    torch.manual_seed(seed)
+    n, k, s = 8, 12, 2
+    cost = torch.rand(n, k, dtype=torch.float64)
+    step_cost = slope_step_cost(s, 1.5, 0.3).double()
+
+    def fn(rows, cols):
+        return cost[rows[:, None], cols]
+
+    paths = torch.tensor(list(_monotone_paths_by_steps(n, k, s)))  # (P, n)
+    energy = cost[torch.arange(n), paths].sum(-1) + step_cost[paths.diff(dim=-1)].sum(-1)
+    for fix in (False, True):
+        got = coarse_to_fine_align(
+            fn,
+            n,
+            k,
+            s,
+            factor=2,
+            radius=1,
+            max_cells=1,
+            margin=1e9,
+            fix_start=fix,
+            fix_end=fix,
+            step_cost=step_cost,
+        )
+        allowed = (
+            (paths[:, 0] == 0) & (paths[:, -1] == k - 1) if fix else torch.ones_like(energy) > 0
+        )
+        best = paths[torch.where(allowed, energy, math.inf).argmin()]
+        assert torch.equal(got.path[0], best)
+        assert got.cost.item() == pytest.approx(cost[torch.arange(n), best].sum().item())
+
+
+def test_coarse_to_fine_max_marginals_match_brute_force():
+    """The band's max-marginals (forward + backward max-product on sliding windows) against
+    enumeration of every monotone path, with a slope prior and forbidden pairs."""
+    from motion.alignment import _max_marginals
+
+    torch.manual_seed(5)
+    n, w, s = 5, 4, 2
+    offsets = np.array([0, 1, 1, 3, 4])
+    unary = -np.random.default_rng(0).random((n, w))
+    unary[2, 1] = -np.inf
+    step_lp = -np.array([0.3, 0.0, 0.2])
+    best = np.full((n, w), -np.inf)
+    positions = [range(o, o + w) for o in offsets]
+    for p in itertools.product(*positions):
+        steps = np.diff(p)
+        if not ((steps >= 0) & (steps <= s)).all():
+            continue
+        score = sum(unary[i, c - offsets[i]] for i, c in enumerate(p)) + step_lp[steps].sum()
+        for i, c in enumerate(p):
+            best[i, c - offsets[i]] = max(best[i, c - offsets[i]], score)
+    np.testing.assert_allclose(_max_marginals(unary, offsets, step_lp), best)
+
+
 # -- bad input ---------------------------------------------------------------------------------
 def test_alignment_input_errors():
     with pytest.raises(
@@ -288,3 +457,11 @@ def test_alignment_input_errors():
         chain_align(torch.zeros(3, 4), 2, step_cost=torch.zeros(4))
     with pytest.raises(AlignmentError, match="same F"):
         sequence_cost_fn(torch.zeros(3, 2), torch.zeros(4, 3))
+    fn = sequence_cost_fn(torch.zeros(30, 2), torch.zeros(40, 2))
+    for kwargs, message in [
+        ({"pool_stride": 0}, "pool_stride must be None or an int >= 1; got 0"),
+        ({"margin": -1.0}, "margin must be a finite number >= 0; got -1.0"),
+        ({"beam": -2}, "beam must be None or an int >= 0; got -2"),
+    ]:
+        with pytest.raises(AlignmentError, match=re.escape(message)):
+            coarse_to_fine_align(fn, 30, 40, 2, **kwargs)
