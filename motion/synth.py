@@ -345,9 +345,16 @@ def synthesize(
     shade = torch.from_numpy(PART_COLOURS.astype(np.float32) / 255.0)
     bg = torch.tensor(BACKGROUND_RGB)
     table = torch.cat([bg[None], shade])
-    frames = table[(labels.long() + 1)]  # (C, T', H, W, 3)
-    grey = frames.mean(-1).reshape(-1, 1, h, w)
-    edge = edges(grey, 0.1, 0.3).reshape(cfg.cameras, num_video, h, w)
+    # colour frames and their edges a chunk of frames at a time (each image is its own):
+    # only the uint8 frames are kept, never float fields of every frame at once
+    frames = np.empty((cfg.cameras, num_video, h, w, 3), dtype=np.uint8)
+    edge = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.bool)
+    for s in range(0, num_video, 64):
+        sl = slice(s, min(s + 64, num_video))
+        rgb = table[(labels[:, sl].long() + 1)]  # (C, n, H, W, 3)
+        grey = rgb.mean(-1).reshape(-1, 1, h, w)
+        edge[:, sl] = edges(grey, 0.1, 0.3).reshape(cfg.cameras, -1, h, w)
+        frames[:, sl] = (rgb.numpy() * 255).round().astype(np.uint8)
 
     arrays = {
         "C_true": (c_true if student is None else torch.full_like(c_true, -1)).numpy(),
@@ -362,7 +369,7 @@ def synthesize(
         "silhouettes": sil.numpy(),
         "labels": labels.numpy(),
         "edges": edge.numpy(),
-        "frames": (frames.numpy() * 255).round().astype(np.uint8),
+        "frames": frames,
         "K": rig.K.numpy(),
         "R": rig.R.numpy(),
         "t": rig.t.numpy(),

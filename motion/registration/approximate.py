@@ -444,6 +444,27 @@ def _pair_map(maps: Tensor) -> Tensor:
     return pairs.view(wide).reshape(-1)
 
 
+#: video frames per step where :func:`_build_scene` derives per-frame maps and draws: the
+#: intermediate maps of a long video (float32 distance maps, their pairs, float64 sort keys)
+#: stay a few tens of MB instead of several GB at once; the results are the same entries
+SCENE_CHUNK = 64
+
+
+def _pair_maps(make: Callable[[slice], Tensor], frames: int) -> Tensor:
+    """:func:`_pair_map` of ``(T', C, H, W)`` maps built ``SCENE_CHUNK`` frames at a time by
+    ``make(frames slice) -> (n, C, H, W)`` (settings dtype) into one flat tensor: the same
+    entries as ``_pair_map`` of all frames (its order is frame-major), without ever holding
+    more than a chunk's intermediates."""
+    out = None
+    for lo in range(0, frames, SCENE_CHUNK):
+        part = _pair_map(make(slice(lo, min(lo + SCENE_CHUNK, frames))))
+        if out is None:
+            per_frame = part.numel() // min(SCENE_CHUNK, frames)
+            out = torch.empty(frames * per_frame, dtype=part.dtype)
+        out[lo * per_frame : lo * per_frame + part.numel()] = part
+    return out
+
+
 def _check_inputs(reference: Reference, video: VideoFeatures, scale: float) -> None:
     if not isinstance(reference, Reference):
         raise RegistrationError(f"expected a Reference; got {type(reference).__name__}")
@@ -498,24 +519,9 @@ def _build_scene(
             f"{int(empty.sum())} frames have none (first: {frames})"
         )
     cam_w = (count > 0).to(dt)
-    # distance to the nearest silhouette pixel (0 inside); empty images are ignored (cam_w 0)
-    dout = distance_to_edges(mask.reshape(-1, 1, h, w)).reshape(tv, c, h, w).to(dt)
-    dout = _pair_map(torch.nan_to_num(dout, posinf=float(h + w)))
-    edist = None
-    if obs.edge_distance is not None:
-        e = obs.edge_distance[0].to(dt)
-        if torch.isnan(e).any() or (e < 0).any():
-            raise RegistrationError(f"{video.name}: edge_distance must be >= 0 and not NaN")
-        edist = _pair_map(torch.nan_to_num(e, posinf=float(h + w)).clamp(max=float(h + w)))
-    # fixed random subsample of silhouette pixels per image (without replacement)
-    m = settings.observed_points
-    keys = torch.rand(tv * c, h * w, generator=generator, dtype=torch.float64)
-    keys = keys.masked_fill(~mask.reshape(tv * c, -1), -1.0)
-    top, idx = keys.topk(min(m, h * w), dim=-1)
-    valid = (top >= 0).to(dt)
-    pts = torch.stack([idx % w, idx // w], -1).to(dt).reshape(tv, c, -1, 2)
-    obs_w = (valid / valid.sum(-1, keepdim=True).clamp_min(1)).reshape(tv, c, -1)
-    # silhouette statistics for the starts and the normalisation
+    # silhouette statistics for the starts and the normalisation, and the reference's
+    # geometry, before the distance maps: their intermediates (float maps of every frame,
+    # forward kinematics of every reference frame) then never sit on top of those maps
     rows_any = mask.any(-1)  # (T', C, H)
     vv = torch.arange(h, dtype=dt)
     top_v = torch.where(rows_any, vv, torch.full_like(vv, float(h))).amin(-1)
@@ -527,6 +533,49 @@ def _build_scene(
     centroid = torch.stack(
         [(weight.sum(-2) * uu).sum(-1) / total, (weight.sum(-1) * vv).sum(-1) / total], -1
     )
+    del weight, rows_any
+    # the reference's geometry at scale G, every frame
+    frames = torch.arange(reference.num_frames)
+    spec = scaled_spec(reference.spec, scale)
+    landmarks = spec.landmarks(reference.body_poses(frames, scale)).to(dt)  # (T, P, 2, 3)
+    radii = spec.shapes.radii.to(dt)
+    joints = reference.body_frames(frames, scale).positions.to(dt)
+    far = float(h + w)
+
+    # distance to the nearest silhouette pixel (0 inside); empty images are ignored (cam_w 0)
+    def outside(sl: slice) -> Tensor:
+        d = distance_to_edges(mask[sl].reshape(-1, 1, h, w)).reshape(-1, c, h, w).to(dt)
+        return torch.nan_to_num(d, posinf=far)
+
+    dout = _pair_maps(outside, tv)
+    edist = None
+    if obs.edge_distance is not None:
+        e = obs.edge_distance[0].to(dt)  # no copy when the dtypes agree
+        if torch.isnan(e).any() or (e < 0).any():
+            raise RegistrationError(f"{video.name}: edge_distance must be >= 0 and not NaN")
+
+        def to_edges(sl: slice) -> Tensor:
+            return torch.nan_to_num(e[sl], posinf=far).clamp(max=far)
+
+        edist = _pair_maps(to_edges, tv)
+    # fixed random subsample of silhouette pixels per image (without replacement); the keys
+    # are drawn a chunk of frames at a time: consecutive draws from one generator are the
+    # same numbers (and leave it in the same state) as one draw of all of them
+    m = settings.observed_points
+    tops, idxs = [], []
+    for lo in range(0, tv, SCENE_CHUNK):
+        sl = slice(lo, min(lo + SCENE_CHUNK, tv))
+        n = sl.stop - sl.start
+        keys = torch.rand(n * c, h * w, generator=generator, dtype=torch.float64)
+        keys = keys.masked_fill_(~mask[sl].reshape(n * c, -1), -1.0)
+        top, idx = keys.topk(min(m, h * w), dim=-1)
+        tops.append(top)
+        idxs.append(idx)
+    del keys
+    top, idx = torch.cat(tops), torch.cat(idxs)
+    valid = (top >= 0).to(dt)
+    pts = torch.stack([idx % w, idx // w], -1).to(dt).reshape(tv, c, -1, 2)
+    obs_w = (valid / valid.sum(-1, keepdim=True).clamp_min(1)).reshape(tv, c, -1)
     # keypoints
     keypoints = kp_joints = None
     if obs.keypoints is not None and video.keypoint_joints is not None:
@@ -541,12 +590,6 @@ def _build_scene(
         if not torch.isfinite(keypoints).all():
             raise RegistrationError(f"{video.name}: keypoints contain NaN or inf")
         kp_joints = torch.tensor([names.index(n) for n in video.keypoint_joints])
-    # the reference's geometry at scale G, every frame
-    frames = torch.arange(reference.num_frames)
-    spec = scaled_spec(reference.spec, scale)
-    landmarks = spec.landmarks(reference.body_poses(frames, scale)).to(dt)  # (T, P, 2, 3)
-    radii = spec.shapes.radii.to(dt)
-    joints = reference.body_frames(frames, scale).positions.to(dt)
     up_b = _unit(settings.reference_up).to(dt)
     seg_len = (landmarks[..., 1, :] - landmarks[..., 0, :]).norm(dim=-1)  # (T, P)
     area = (radii.sum(-1)) * seg_len + math.pi / 2 * radii.square().sum(-1)

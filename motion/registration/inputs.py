@@ -38,19 +38,33 @@ def sequence_cameras(seq: Sequence, dtype=torch.float32) -> CameraRig:
 
 
 def features_from_sequence(
-    seq: Sequence, keypoints: bool = False, noisy: bool = True, image: bool = True
+    seq: Sequence,
+    keypoints: bool = False,
+    noisy: bool = True,
+    image: bool = True,
+    image_dtype: torch.dtype = torch.float32,
 ) -> VideoFeatures:
     """A synthetic sequence as registration input: silhouettes, the distance to its edge
     images, the colour frames (``image``) and, with ``keypoints``, the 2-D joints (noisy
-    ones unless ``noisy=False``), named by the sequence's skeleton joints."""
+    ones unless ``noisy=False``), named by the sequence's skeleton joints.
+
+    ``image_dtype``: ``torch.float32`` gives colour in [0, 1]; ``torch.uint8`` keeps the
+    sequence's 0-255 frames as they are (no copy, a quarter of the memory), which
+    :func:`motion.registration.register` converts a window at a time
+    (:func:`motion.registration.refine.colour_image`) -- for long videos; other consumers
+    of :class:`~motion.body.observation.Observation` expect float images."""
+    if image_dtype not in (torch.float32, torch.uint8):
+        raise ValueError(f"image_dtype must be torch.float32 or torch.uint8; got {image_dtype}")
     sil = torch.from_numpy(seq.arrays["silhouettes"]).float()  # (C, T', H, W)
     c, t, h, w = sil.shape
     edge = torch.from_numpy(seq.arrays["edges"]).reshape(c * t, 1, h, w)
     dist = distance_to_edges(edge).reshape(c, t, h, w)
-    dist = torch.where(torch.isfinite(dist), dist, torch.full_like(dist, NO_EDGE_PX))
+    dist.masked_fill_(~torch.isfinite(dist), NO_EDGE_PX)  # in place: no second map
     frames = None
     if image:
-        rgb = torch.from_numpy(np.ascontiguousarray(seq.arrays["frames"])).float() / 255
+        rgb = torch.from_numpy(np.ascontiguousarray(seq.arrays["frames"]))  # (C, T', H, W, 3)
+        if image_dtype == torch.float32:
+            rgb = rgb.float().div_(255)
         frames = rgb.permute(1, 0, 4, 2, 3)[None]  # (1, T', C, 3, H, W)
     kp, names = None, None
     if keypoints:

@@ -65,17 +65,29 @@ class RegistrationSettings:
     seed: int = 0
 
 
-def silhouette_iou(shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor) -> Tensor:
+#: video frames rendered at once by :func:`silhouette_iou` (each frame's IoU is its own:
+#: chunks bound the label maps of a long video, ~0.5 MB per 160 x 120 frame and camera)
+IOU_CHUNK = 64
+
+
+def silhouette_iou(
+    shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor, chunk: int = IOU_CHUNK
+) -> Tensor:
     """Per frame, the IoU of the rendered body against the observed silhouettes, mean over
     cameras. ``silhouettes`` ``(T', C, H, W)`` in [0, 1] (thresholded at 0.5), ``poses``
-    ``(T', P, 7)`` -> ``(T',)``."""
+    ``(T', P, 7)`` -> ``(T',)``. Rendered ``chunk`` frames at a time."""
     h, w = silhouettes.shape[-2:]
-    segments = shapes.segments(poses, torch.arange(shapes.num_parts))
-    covered = body_layers(project_parts(rig, segments, shapes.radii.to(poses)), h, w).label >= 0
-    seen = silhouettes > 0.5
-    inter = (covered & seen).flatten(2).sum(-1).float()
-    union = (covered | seen).flatten(2).sum(-1).float().clamp_min(1)
-    return (inter / union).mean(-1)
+    out = []
+    for lo in range(0, poses.shape[0], chunk):
+        pose = poses[lo : lo + chunk]
+        segments = shapes.segments(pose, torch.arange(shapes.num_parts))
+        parts = project_parts(rig, segments, shapes.radii.to(pose))
+        covered = body_layers(parts, h, w).label >= 0
+        seen = silhouettes[lo : lo + chunk] > 0.5
+        inter = (covered & seen).flatten(2).sum(-1).float()
+        union = (covered | seen).flatten(2).sum(-1).float().clamp_min(1)
+        out.append((inter / union).mean(-1))
+    return torch.cat(out)
 
 
 def _fill_unseen(stage1: Stage1Result, seen: Tensor) -> Stage1Result:
@@ -148,9 +160,15 @@ def register(
         raise RegistrationError(
             f"{video.name}: the person is never seen (every silhouette is empty)"
         )
-    stage1 = approximate_registration(
-        reference, video.cut(seen.nonzero().flatten()), scale, s.stage1, generator, log
+    # stage 1 reads no colour: without it, and cut only when some frame is unseen (a cut by
+    # indices copies every map)
+    shapes_only = dataclasses.replace(
+        video, observation=dataclasses.replace(video.observation, image=None)
     )
+    if not bool(seen.all()):
+        shapes_only = shapes_only.cut(seen.nonzero().flatten())
+    stage1 = approximate_registration(reference, shapes_only, scale, s.stage1, generator, log)
+    del shapes_only
     if not bool(seen.all()):
         stage1 = _fill_unseen(stage1, seen)
         notes["unseen_frames"] = str(int((~seen).sum()))

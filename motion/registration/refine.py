@@ -27,6 +27,7 @@ parts, ``J`` joints, ``K`` particles, ``W`` band states.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -66,6 +67,7 @@ from pgm.rotations import qmul
 __all__ = [
     "RefineResult",
     "RefineSettings",
+    "colour_image",
     "estimate_part_colours",
     "part_keypoints",
     "place_poses",
@@ -209,26 +211,56 @@ def part_keypoints(reference: Reference, keypoint_joints: list[str] | None) -> T
     return out if (out >= 0).any() else None
 
 
-def estimate_part_colours(shapes: PartShapes, video: VideoFeatures, poses: Tensor) -> Tensor:
+#: video frames rendered at once where a whole video's posture is drawn (the part colours):
+#: each frame's label map is its own, chunks bound a long video's label maps and the
+#: colour images made from uint8 frames
+FRAME_CHUNK = 64
+
+
+def colour_image(image: Tensor | None) -> Tensor | None:
+    """Colour frames as the cues read them, float in [0, 1]: uint8 frames (0-255, as
+    :func:`motion.registration.inputs.features_from_sequence` can keep them, a quarter of
+    the memory of float32) divided by 255; float images as they are."""
+    if image is None or image.dtype != torch.uint8:
+        return image
+    return image.float() / 255
+
+
+def estimate_part_colours(
+    shapes: PartShapes, video: VideoFeatures, poses: Tensor, chunk: int = FRAME_CHUNK
+) -> Tensor:
     """Each part's colour: the median of the image where the rendered posture shows that
     part in front and the silhouette agrees, over every frame and camera -- the student's
     appearance learnt from the current estimate. ``poses`` ``(T', P, 7)`` -> ``(P, 3)`` in
-    [0, 1]; a part never seen gets the median colour of the whole silhouette."""
+    [0, 1]; a part never seen gets the median colour of the whole silhouette. The images
+    may be uint8 (:func:`colour_image`); rendered ``chunk`` frames at a time (the medians
+    are over the same pixels as all at once)."""
     obs = video.observation
     if obs.image is None:
         raise RegistrationError(f"{video.name}: no colour images to learn part colours from")
     h, w = obs.size
-    segments = shapes.segments(poses, torch.arange(shapes.num_parts))
-    labels = body_layers(project_parts(video.cameras, segments, shapes.radii.to(poses)), h, w)
-    label = labels.label  # (T', C, H, W)
-    image = obs.image[0].permute(0, 1, 3, 4, 2)  # (T', C, H, W, 3)
-    on = obs.silhouette[0] > 0.5
-    whole = image[on].median(0).values if on.any() else torch.full((3,), 0.5)
-    out = whole.expand(shapes.num_parts, 3).clone()
-    for p in range(shapes.num_parts):  # P medians; a loop over 15 parts, not over pixels
-        mask = (label == p) & on
-        if int(mask.sum()) >= 10:
-            out[p] = image[mask].median(0).values
+    parts = torch.arange(shapes.num_parts)
+    whole: list[Tensor] = []  # colours (N, 3) of the silhouette's pixels, chunk by chunk
+    per_part: list[list[Tensor]] = [[] for _ in range(shapes.num_parts)]
+    for lo in range(0, poses.shape[0], chunk):
+        sl = slice(lo, min(lo + chunk, poses.shape[0]))
+        pose = poses[sl]
+        segments = shapes.segments(pose, parts)
+        label = body_layers(
+            project_parts(video.cameras, segments, shapes.radii.to(pose)), h, w
+        ).label  # (n, C, H, W)
+        image = colour_image(obs.image[0, sl]).permute(0, 1, 3, 4, 2)  # (n, C, H, W, 3)
+        on = obs.silhouette[0, sl] > 0.5
+        whole.append(image[on])
+        for p in range(shapes.num_parts):  # a loop over 15 parts, not over pixels
+            per_part[p].append(image[(label == p) & on])
+    silhouette = torch.cat(whole)
+    median = silhouette.median(0).values if len(silhouette) else torch.full((3,), 0.5)
+    out = median.expand(shapes.num_parts, 3).clone()
+    for p, pixels in enumerate(per_part):
+        pixels = torch.cat(pixels)
+        if len(pixels) >= 10:
+            out[p] = pixels.median(0).values
     return out
 
 
@@ -304,6 +336,8 @@ def _run_window(
     p = spec.num_parts
     n = frames.stop - frames.start
     obs = problem.video.cut(frames).observation
+    if obs.image is not None and obs.image.dtype == torch.uint8:  # the window's colour only
+        obs = dataclasses.replace(obs, image=colour_image(obs.image))
     unary = BodyObservation(problem.shapes, problem.video.cameras, obs, cues=problem.cues)
     template = SpatioTemporalTemplate(
         p, temporal=None if s.temporal is None else s.temporal.factor()

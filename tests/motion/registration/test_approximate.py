@@ -18,6 +18,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from motion.body.observation import Observation
 from motion.cameras import CameraRig
 from motion.features import distance_to_edges
+from motion.registration import approximate
 from motion.registration.approximate import (
     PairFit,
     Stage1Result,
@@ -314,6 +315,25 @@ def test_same_generator_same_fit(reference, walk):
         init=(a.rotation[:, 0], a.translation[:, 0]),  # one warm start per row
     )
     assert bool((warm.cost <= a.cost * 1.05 + 1e-7).all())
+
+
+@pytest.mark.parametrize("fixture", ["walk", "walk_two_cameras"])
+def test_scene_built_in_chunks_of_frames_is_the_same(reference, fixture, request, monkeypatch):
+    """The scene's per-frame maps and silhouette draws, built a few frames at a time (as a
+    long video is, to bound memory), are the same entries as built all at once, and the
+    generator is left in the same state (it goes on to stages 2-3)."""
+    video = _video(request.getfixturevalue(fixture))
+    scenes, states = [], []
+    for chunk in (1000, 5):  # all 72 frames at once; then 15 chunks, the last one short
+        monkeypatch.setattr(approximate, "SCENE_CHUNK", chunk)
+        g = torch.Generator().manual_seed(4)
+        scenes.append(approximate._build_scene(reference, video, 1.0, Stage1Settings(), g))
+        states.append(g.get_state())
+    whole, chunked = scenes
+    for name in ("dout", "edist", "obs", "obs_w", "height", "cam_w", "centroid"):
+        a, b = getattr(whole, name), getattr(chunked, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), name
+    assert torch.equal(states[0], states[1])
 
 
 # -- (e) bad input ------------------------------------------------------------------------------

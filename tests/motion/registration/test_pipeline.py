@@ -9,10 +9,11 @@ import dataclasses
 import pytest
 import torch
 
-from motion.body.observation import Observation
+from motion.body.observation import Observation, PartShapes
 from motion.registration import Registration, RegistrationError, RegistrationSettings, register
 from motion.registration.inputs import features_from_sequence
-from motion.registration.refine import RefineSettings
+from motion.registration.pipeline import silhouette_iou
+from motion.registration.refine import RefineSettings, place_poses
 from motion.registration.types import Reference
 from motion.synth import SynthConfig, synthesize
 from tests.motion.body.conftest import WALK
@@ -64,3 +65,39 @@ def test_a_video_without_the_person_is_refused(short):
         register(ref, _blank(video, slice(None)), settings=QUICK)
     with pytest.raises(RegistrationError, match="at least 2 video frames"):
         register(ref, video.cut(slice(0, 1)), settings=QUICK)
+
+
+def test_silhouette_iou_in_chunks_is_the_same_and_high_at_the_truth(short):
+    """The fit score rendered a few frames at a time (as a long video is) is the one
+    rendered all at once; at the true posture (no articulation here) it is high."""
+    seq, ref, video = short
+    n = video.num_frames
+    c = torch.from_numpy(seq.arrays["C_shown"][:n]).long()
+    yaw = torch.from_numpy(seq.arrays["T_yaw_rad"][:n])
+    zero = torch.zeros_like(yaw)
+    r_yaw = torch.stack(
+        [
+            torch.stack([yaw.cos(), zero, yaw.sin()], -1),
+            torch.stack([zero, zero + 1, zero], -1),
+            torch.stack([-yaw.sin(), zero, yaw.cos()], -1),
+        ],
+        -2,
+    )
+    rot = r_yaw @ ref.rotations[c, 0]
+    pos = torch.from_numpy(seq.arrays["joints3d"][:n, 0])
+    poses = place_poses(rot, pos, ref.body_poses(c)).float()
+    shapes = PartShapes(ref.spec.shapes.axis.float(), ref.spec.shapes.radii.float())
+    sil = video.observation.silhouette[0]
+    whole = silhouette_iou(shapes, video.cameras, sil, poses, chunk=n)
+    assert torch.equal(silhouette_iou(shapes, video.cameras, sil, poses, chunk=7), whole)
+    assert whole.shape == (n,) and float(whole.min()) > 0.8
+
+
+def test_uint8_frames_give_the_same_registration(short):
+    """Colour kept as uint8 (a long video's memory) and converted window by window: the
+    same registration, bit for bit, as from float frames."""
+    seq, ref, video = short
+    small = features_from_sequence(seq, image_dtype=torch.uint8).cut(slice(0, 12))
+    runs = [register(ref, v, settings=QUICK) for v in (video.cut(slice(0, 12)), small)]
+    for name in ("C", "C_stage1", "rotations", "T_translation", "fit"):
+        assert torch.equal(getattr(runs[0], name), getattr(runs[1], name)), name

@@ -17,6 +17,7 @@ from motion.registration.refine import (
     RefineSettings,
     _owner,
     _window_starts,
+    colour_image,
     estimate_part_colours,
     part_keypoints,
     place_poses,
@@ -93,6 +94,20 @@ def test_learnt_part_colours_are_the_rendered_ones(student):
     assert int((err < 0.05).sum()) >= spec.num_parts - 2, err  # a hidden part may be mixed
 
 
+def test_part_colours_from_uint8_frames_in_chunks_are_the_same(student):
+    """uint8 frames (what a long video keeps) learnt a few frames at a time give exactly
+    the colours of float frames all at once: the same pixels, the same medians."""
+    seq, ref, video, c, rot, pos = student
+    spec = scaled_spec(ref.spec, 1.0)
+    poses = place_poses(rot, pos, ref.body_poses(c).float()).float()
+    small = features_from_sequence(seq, image_dtype=torch.uint8).cut(slice(20, 44))
+    assert small.observation.image.dtype == torch.uint8
+    assert torch.equal(colour_image(small.observation.image), video.observation.image)
+    want = estimate_part_colours(spec.shapes, video, poses)
+    got = estimate_part_colours(spec.shapes, small, poses, chunk=5)
+    assert torch.equal(got, want)
+
+
 def test_part_keypoints_name_the_joints_at_each_part_end(student):
     _, ref, _, _, _, _ = student
     keys = part_keypoints(ref, ref.skeleton.names)
@@ -127,6 +142,21 @@ def test_stage2_from_the_truth_keeps_t_and_a_and_is_reproducible(student):
     driven = sorted(set(ref.spec.frame_joints.tolist()) - {0})
     err = _angle_deg(ref.rotations[c[:4]][:, driven], res.rotations[:, driven])
     assert float(err.mean()) < 12, err.mean(0)
+
+
+def test_stages23_read_uint8_frames_as_the_float_ones(student):
+    """The intensity cue reads each window's uint8 frames converted to [0, 1]: the same
+    result, bit for bit, as from float frames."""
+    seq, ref, video, c, rot, pos = student
+    small = features_from_sequence(seq, image_dtype=torch.uint8).cut(slice(20, 44))
+    s = RefineSettings(
+        particles=16, iterations=1, restarts=1, band=6, rounds=1, window=4, overlap=1
+    )
+    runs = [
+        refine(ref, v.cut(slice(0, 6)), c[:6], rot[:6], pos[:6], 1.0, s, torch.Generator())
+        for v in (video, small)
+    ]
+    assert torch.equal(runs[0].poses, runs[1].poses) and torch.equal(runs[0].C, runs[1].C)
 
 
 def test_stage3_moves_a_shifted_c_toward_the_truth(student):
