@@ -22,12 +22,22 @@ from motion.registration.refine import (
     part_keypoints,
     place_poses,
     refine,
+    smooth_posture,
 )
 from motion.registration.types import Reference, RegistrationError, scaled_spec
 from motion.synth import SynthConfig, synthesize
 from tests.motion.body.conftest import WALK
 
 F64 = torch.float64
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """``(..., 3)`` -> ``(..., 3, 3)`` cross-product matrices."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack(
+        [torch.stack([z, -w, y], -1), torch.stack([w, z, -x], -1), torch.stack([-y, x, z], -1)], -2
+    )
 
 
 def _yaw(angles: torch.Tensor) -> torch.Tensor:
@@ -142,6 +152,57 @@ def test_stage2_from_the_truth_keeps_t_and_a_and_is_reproducible(student):
     driven = sorted(set(ref.spec.frame_joints.tolist()) - {0})
     err = _angle_deg(ref.rotations[c[:4]][:, driven], res.rotations[:, driven])
     assert float(err.mean()) < 12, err.mean(0)
+
+
+def test_smoothing_keeps_a_steady_offset_and_the_reference_swing(student):
+    """A student that differs from the reference by a constant articulation on one joint
+    and a constant heading, following the reference's own pelvis swing: smoothing the
+    posture in the reference's terms leaves it as it is (to rounding), however fast the
+    reference moves (the heading away from the ends, where a turn is cut)."""
+    _, ref, _, c, rot, pos = student
+    joint = ref.skeleton.index("LeftLeg")
+    offset = torch.linalg.matrix_exp(
+        torch.tensor([[0.0, -0.3, 0.1], [0.3, 0.0, -0.2], [-0.1, 0.2, 0.0]], dtype=F64)
+    )
+    local = ref.rotations[c].clone()
+    local[:, joint] = local[:, joint] @ offset
+    local[:, 0] = rot  # a turning heading (30 degrees over the video) times the root's swing
+    line = pos[0] + torch.arange(len(c), dtype=F64)[:, None] * torch.tensor([0.02, 0.0, 0.01])
+    got, root = smooth_posture(ref, c, local, line, sigma=2.5)
+    free = [j for j in range(ref.skeleton.num_joints) if j not in (0, joint)]
+    torch.testing.assert_close(got[:, free], local[:, free], atol=1e-12, rtol=0)
+    torch.testing.assert_close(got[:, joint], local[:, joint], atol=1e-12, rtol=0)
+    # the heading turns at a constant rate: away from the ends (where the kernel is cut)
+    # its chordal mean is itself (a rotation about one axis: the circular mean)
+    r = math.ceil(3 * 2.5)
+    torch.testing.assert_close(got[r:-r, 0], local[r:-r, 0], atol=1e-9, rtol=0)
+    torch.testing.assert_close(root[r:-r], line[r:-r], atol=1e-12, rtol=0)
+
+
+def test_smoothing_takes_noise_out_of_the_articulation(student):
+    """Frame-to-frame noise on A (what finite particles leave) is mostly averaged out."""
+    _, ref, _, c, _, pos = student
+    g = torch.Generator().manual_seed(2)
+    noise = torch.linalg.matrix_exp(_skew(0.1 * torch.randn(len(c), 3, dtype=F64, generator=g)))
+    joint = ref.skeleton.index("RightForeArm")
+    local = ref.rotations[c].clone()
+    local[:, joint] = local[:, joint] @ noise
+    got, _ = smooth_posture(ref, c, local, pos, sigma=2.5)
+    before = _angle_deg(ref.rotations[c, joint], local[:, joint]).mean()
+    after = _angle_deg(ref.rotations[c, joint], got[:, joint]).mean()
+    assert float(after) < 0.5 * float(before), (before, after)
+
+
+def test_smoothed_refinement_returns_the_poses_of_its_skeleton_posture(student):
+    """With smoothing on (the default) the part poses returned are the smoothed skeleton
+    posture's, so the fit score and the overlays show what the angles say."""
+    _, ref, video, c, rot, pos = student
+    s = RefineSettings(particles=16, iterations=1, restarts=1, refine_c=False, window=4, overlap=1)
+    res = refine(ref, video.cut(slice(0, 6)), c[:6], rot[:6], pos[:6], 1.0, s, torch.Generator())
+    want = place_poses(res.rotations[:, 0], res.translation, ref.posture_poses(res.rotations))
+    torch.testing.assert_close(res.poses, want.float(), atol=1e-5, rtol=0)
+    with pytest.raises(RegistrationError, match="smooth_s"):
+        RefineSettings(smooth_s=-0.1)
 
 
 def test_stages23_read_uint8_frames_as_the_float_ones(student):
