@@ -440,10 +440,11 @@ def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     body = problem.body[c].double()
     body = torch.cat([body[..., :3] / g, body[..., 3:]], -1)  # B at C, unit size
     root = None
+    observed = ref.spec.landmarks(unit)  # (T', P, 2, 3) the estimated part ends
     if problem.settings.whole_body_t:
         # T: the reference posture at C fitted rigidly to every estimated landmark
         flat = ref.spec.landmarks(body).flatten(-3, -2)
-        root, _ = rigid_fit(flat, ref.spec.landmarks(unit).flatten(-3, -2))
+        root, _ = rigid_fit(flat, observed.flatten(-3, -2))
     if problem.settings.twist_from_reference:
         # MAP weight of the reference pull: landmarks of std sigma against joint angles of
         # std articulation_std give sigma^2 / (2 articulation_std^2) (m^2)
@@ -451,7 +452,13 @@ def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
         weight = s.landmark_std**2 / (2 * s.articulation_std**2)
         unit = fit_part_rotations(ref.spec, unit, body, weight, root_rotation=root)
     posture = fit_posture(ref.spec, ref.skeleton, ref.model, unit, ref.rotations[c])
-    return posture.rotations, posture.fk.positions[:, 0] * g
+    # fit_posture hangs the skeleton from the root part; with its rotations fixed, the
+    # translation nearest (least squares) to every estimated landmark is that plus the mean
+    # gap (the parts' ends drift a few cm along a chain of bones of fixed length)
+    origin = posture.fk.positions[:, 0]
+    placed = place_poses(posture.rotations[:, 0], origin, ref.posture_poses(posture.rotations))
+    gap = observed - ref.spec.landmarks(placed)
+    return posture.rotations, (origin + gap.mean((-3, -2))) * g
 
 
 def refine(
