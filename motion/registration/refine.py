@@ -188,10 +188,12 @@ class RefineSettings:
 
 @dataclass
 class RefineResult:
-    """Stages 2-3 output. poses: ``(T', P, 7)`` part poses; C: ``(T',)`` long;
+    """Stages 2-3 output. poses: ``(T', P, 7)`` part poses of the skeleton posture
+    (``rotations`` placed at ``translation``: what is exported and drawn); C: ``(T',)`` long;
     rotations: ``(T', J, 3, 3)`` local (root's = T's rotation); translation: ``(T', 3)``
     root position, metres; rounds: stage 3 rounds run; c_changes: frames whose C changed in
-    each round."""
+    each round; particle_poses: ``(T', P, 7)`` particle BP's own estimate of each part
+    (free parts, before the skeleton fit and the smoothing), for diagnostics."""
 
     poses: Tensor
     C: Tensor
@@ -199,6 +201,7 @@ class RefineResult:
     translation: Tensor
     rounds: int
     c_changes: list[int]
+    particle_poses: Tensor
 
 
 # -- geometry helpers -----------------------------------------------------------------------
@@ -533,8 +536,8 @@ def refine(
     local, root = _fit(problem, poses, c)
     if s.smooth_s > 0:
         local, root = smooth_posture(reference, c, local, root, s.smooth_s * video.frame_rate)
-        poses = place_poses(local[:, 0], root, reference.posture_poses(local, scale)).to(poses)
-    return RefineResult(poses, c, local, root, rounds, changes)
+    skeleton = place_poses(local[:, 0], root, reference.posture_poses(local, scale)).to(poses)
+    return RefineResult(skeleton, c, local, root, rounds, changes, poses)
 
 
 def smooth_posture(

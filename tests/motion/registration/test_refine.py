@@ -194,8 +194,8 @@ def test_smoothing_takes_noise_out_of_the_articulation(student):
 
 
 def test_smoothed_refinement_returns_the_poses_of_its_skeleton_posture(student):
-    """With smoothing on (the default) the part poses returned are the smoothed skeleton
-    posture's, so the fit score and the overlays show what the angles say."""
+    """The part poses returned are the (smoothed) skeleton posture's, so the fit score and
+    the overlays show what the angles say."""
     _, ref, video, c, rot, pos = student
     s = RefineSettings(particles=16, iterations=1, restarts=1, refine_c=False, window=4, overlap=1)
     res = refine(ref, video.cut(slice(0, 6)), c[:6], rot[:6], pos[:6], 1.0, s, torch.Generator())
@@ -206,16 +206,17 @@ def test_smoothed_refinement_returns_the_poses_of_its_skeleton_posture(student):
 
 
 def test_the_fitted_translation_is_the_least_squares_one(student):
-    """Without smoothing the part poses returned are BP's; the skeleton posture's root
-    position is the least-squares translation onto their landmarks, given its rotations:
-    the mean gap between the two sets of landmarks is zero in every frame."""
+    """Without smoothing, the skeleton posture's root position is the least-squares
+    translation onto the landmarks of BP's parts, given its rotations: the mean gap between
+    the two sets of landmarks is zero in every frame."""
     _, ref, video, c, rot, pos = student
     s = RefineSettings(
         particles=16, iterations=1, restarts=1, refine_c=False, window=4, overlap=1, smooth_s=0
     )
     res = refine(ref, video.cut(slice(0, 5)), c[:5], rot[:5], pos[:5], 1.0, s, torch.Generator())
     skeleton = place_poses(res.rotations[:, 0], res.translation, ref.posture_poses(res.rotations))
-    gap = ref.spec.landmarks(res.poses.double()) - ref.spec.landmarks(skeleton)
+    torch.testing.assert_close(res.poses, skeleton.float(), atol=1e-5, rtol=0)
+    gap = ref.spec.landmarks(res.particle_poses.double()) - ref.spec.landmarks(skeleton)
     assert float(gap.norm(dim=-1).mean()) > 1e-3  # BP's parts are not a rigid skeleton
     torch.testing.assert_close(gap.mean((-3, -2)), torch.zeros(5, 3, dtype=F64), atol=1e-6, rtol=0)
 
