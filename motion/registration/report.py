@@ -292,6 +292,7 @@ def render_report(inputs: ReportInputs) -> str:
         fit_word=_fit_word(float(fit.mean())),
         trust=_trust_counts(fit),
         untrusted=int((fit < FIT_FAIR).sum()),
+        trusted_frames=int(inputs.trusted.any(-1).sum()),
         fit_good=FIT_GOOD,
         fit_fair=FIT_FAIR,
         correspondence=correspondence_figure(inputs),

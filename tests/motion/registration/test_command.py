@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import motion.registration.command as command
+import motion.registration.export as export
 from motion.__main__ import main
 from motion.bvh import read_bvh, write_bvh
 from motion.draw import write_video
@@ -195,6 +196,19 @@ def test_report_is_self_contained_and_says_the_findings(register_run, summary):
     assert findings, "the walk of another performer differs somewhere"
     for d in findings:
         assert html.escape(d["text"]) in text
+
+
+def test_a_report_without_a_trusted_frame_says_so(register_run, tmp_path, monkeypatch):
+    """Where no frame fits well enough (here: the bar raised above any IoU), the report does
+    not claim that no joint differs: it says no frame can be read, and why that may be."""
+    monkeypatch.setattr(command, "TRUSTED_FIT", 1.01)
+    monkeypatch.setattr(export, "TRUSTED_FIT", 1.01)
+    out = tmp_path / "out"
+    assert main(register_argv(register_run.student, out)) == 0
+    text = (out / "report.html").read_text(encoding="utf-8")
+    assert "No frame fits well enough to read joint differences from" in text
+    assert "No joint differs from the reference" not in text
+    assert json.loads((out / "summary.json").read_text())["largest_differences"] == []
 
 
 def test_register_help_lists_the_settings(capsys):
