@@ -283,6 +283,7 @@ def render_report(inputs: ReportInputs) -> str:
     return template.render(
         title=f"Registration of {html.unescape(', '.join(inputs.video_names))}",
         s=s,
+        reference_name=Path(s.reference).name,
         duration=f"{s.num_video_frames / s.video_rate_hz:.2f}",
         start_s=f"{s.c_frames[0] / s.reference_rate_hz:.2f}",
         size_measured=not s.notes.get("G", "").startswith(SCALE_NOT_ESTIMATED),
