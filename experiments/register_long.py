@@ -40,7 +40,6 @@ registration set the peak), ``sec_stages23``, ``sec_synthesize``.
 
 from __future__ import annotations
 
-import ctypes
 import math
 import resource
 import sys
@@ -61,6 +60,7 @@ from torch import Tensor
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note, progress
 from experiments.register_synthetic import _angle_deg, _truth
+from experiments.runtime import release_freed_memory
 from experiments.stick_time import BUNDLED
 from motion.bvh import BVH, read_bvh, write_bvh
 from motion.kinematics import Skeleton, local_rotations, matrix_to_euler
@@ -330,20 +330,6 @@ def peak_rss_mb() -> float:
     on macOS)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
-
-
-def release_freed_memory() -> None:
-    """Hand the memory this process has freed back to the system: glibc keeps freed small
-    blocks in its heap (the synthesis' and the reference's intermediates: ~0.15 GB per
-    1,500 video frames here), where they would sit under the registration's peak. No
-    result changes; a no-op without glibc's ``malloc_trim``."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):  # another C library (musl)
-        return
-    trim(0)
 
 
 def run(cfg: RegisterLongConfig):

@@ -39,9 +39,7 @@ def smooth_values(values: Tensor, sigma: float) -> Tensor:
 
     ``out[t] = sum_s w(t - s) values[s] / sum_s w(t - s)`` over frames ``s`` inside the
     sequence (the weights renormalised at the ends)."""
-    if sigma == 0:
-        return values.clone()
-    if values.shape[0] == 0:
+    if sigma == 0 or values.shape[0] == 0:
         return values.clone()
     kernel = gaussian_kernel(sigma, values.dtype)
     radius = (len(kernel) - 1) // 2

@@ -62,6 +62,9 @@ BACKGROUND_RGB = (0.85, 0.85, 0.8)
 #: with the videos, each camera's empty scene (a clean plate, as one films before the person
 #: walks in) is written as ``<camera><BACKGROUND_SUFFIX>``
 BACKGROUND_SUFFIX = "_background.png"
+#: video frames coloured (and their edges found) at once: each image is its own, so only the
+#: uint8 frames of the whole video are kept, never float colour fields of every frame
+COLOUR_CHUNK = 64
 
 
 class SynthConfigError(SettingError):
@@ -345,12 +348,11 @@ def synthesize(
     shade = torch.from_numpy(PART_COLOURS.astype(np.float32) / 255.0)
     bg = torch.tensor(BACKGROUND_RGB)
     table = torch.cat([bg[None], shade])
-    # colour frames and their edges a chunk of frames at a time (each image is its own):
-    # only the uint8 frames are kept, never float fields of every frame at once
+    # colour frames and their edges a chunk of frames at a time (COLOUR_CHUNK)
     frames = np.empty((cfg.cameras, num_video, h, w, 3), dtype=np.uint8)
     edge = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.bool)
-    for s in range(0, num_video, 64):
-        sl = slice(s, min(s + 64, num_video))
+    for s in range(0, num_video, COLOUR_CHUNK):
+        sl = slice(s, min(s + COLOUR_CHUNK, num_video))
         rgb = table[(labels[:, sl].long() + 1)]  # (C, n, H, W, 3)
         grey = rgb.mean(-1).reshape(-1, 1, h, w)
         edge[:, sl] = edges(grey, 0.1, 0.3).reshape(cfg.cameras, -1, h, w)

@@ -58,7 +58,13 @@ from motion.alignment import AlignmentError, coarse_to_fine_align, slope_step_co
 from motion.body.observation import SampleLayout
 from motion.features import distance_to_edges
 from motion.pose import solve_pose, solve_pose_views
-from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
+from motion.registration.types import (
+    FRAME_CHUNK,
+    Reference,
+    RegistrationError,
+    VideoFeatures,
+    scaled_spec,
+)
 from pgm import TableFactor, chain_map
 
 __all__ = [
@@ -444,22 +450,16 @@ def _pair_map(maps: Tensor) -> Tensor:
     return pairs.view(wide).reshape(-1)
 
 
-#: video frames per step where :func:`_build_scene` derives per-frame maps and draws: the
-#: intermediate maps of a long video (float32 distance maps, their pairs, float64 sort keys)
-#: stay a few tens of MB instead of several GB at once; the results are the same entries
-SCENE_CHUNK = 64
-
-
 def _pair_maps(make: Callable[[slice], Tensor], frames: int) -> Tensor:
-    """:func:`_pair_map` of ``(T', C, H, W)`` maps built ``SCENE_CHUNK`` frames at a time by
+    """:func:`_pair_map` of ``(T', C, H, W)`` maps built ``FRAME_CHUNK`` frames at a time by
     ``make(frames slice) -> (n, C, H, W)`` (settings dtype) into one flat tensor: the same
     entries as ``_pair_map`` of all frames (its order is frame-major), without ever holding
     more than a chunk's intermediates."""
     out = None
-    for lo in range(0, frames, SCENE_CHUNK):
-        part = _pair_map(make(slice(lo, min(lo + SCENE_CHUNK, frames))))
+    for lo in range(0, frames, FRAME_CHUNK):
+        part = _pair_map(make(slice(lo, min(lo + FRAME_CHUNK, frames))))
         if out is None:
-            per_frame = part.numel() // min(SCENE_CHUNK, frames)
+            per_frame = part.numel() // min(FRAME_CHUNK, frames)
             out = torch.empty(frames * per_frame, dtype=part.dtype)
         out[lo * per_frame : lo * per_frame + part.numel()] = part
     return out
@@ -563,8 +563,8 @@ def _build_scene(
     # same numbers (and leave it in the same state) as one draw of all of them
     m = settings.observed_points
     tops, idxs = [], []
-    for lo in range(0, tv, SCENE_CHUNK):
-        sl = slice(lo, min(lo + SCENE_CHUNK, tv))
+    for lo in range(0, tv, FRAME_CHUNK):
+        sl = slice(lo, min(lo + FRAME_CHUNK, tv))
         n = sl.stop - sl.start
         keys = torch.rand(n * c, h * w, generator=generator, dtype=torch.float64)
         keys = keys.masked_fill_(~mask[sl].reshape(n * c, -1), -1.0)

@@ -37,6 +37,7 @@ from motion.registration.approximate import (
 )
 from motion.registration.refine import Progress, RefineSettings, refine
 from motion.registration.types import (
+    FRAME_CHUNK,
     Reference,
     Registration,
     RegistrationError,
@@ -65,13 +66,8 @@ class RegistrationSettings:
     seed: int = 0
 
 
-#: video frames rendered at once by :func:`silhouette_iou` (each frame's IoU is its own:
-#: chunks bound the label maps of a long video, ~0.5 MB per 160 x 120 frame and camera)
-IOU_CHUNK = 64
-
-
 def silhouette_iou(
-    shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor, chunk: int = IOU_CHUNK
+    shapes, rig: CameraRig, silhouettes: Tensor, poses: Tensor, chunk: int = FRAME_CHUNK
 ) -> Tensor:
     """Per frame, the IoU of the rendered body against the observed silhouettes, mean over
     cameras. ``silhouettes`` ``(T', C, H, W)`` in [0, 1] (thresholded at 0.5), ``poses``

@@ -48,7 +48,13 @@ from motion.body.observation import (
     Silhouette,
     body_layers,
 )
-from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
+from motion.registration.types import (
+    FRAME_CHUNK,
+    Reference,
+    RegistrationError,
+    VideoFeatures,
+    scaled_spec,
+)
 from motion.render import project_parts
 from motion.smoothing import smooth_rotations, smooth_values
 from pgm import (
@@ -230,12 +236,6 @@ def part_keypoints(reference: Reference, keypoint_joints: list[str] | None) -> T
             if len(names) == 1 and names[0] in column:
                 out[p, end] = column[names[0]]
     return out if (out >= 0).any() else None
-
-
-#: video frames rendered at once where a whole video's posture is drawn (the part colours):
-#: each frame's label map is its own, chunks bound a long video's label maps and the
-#: colour images made from uint8 frames
-FRAME_CHUNK = 64
 
 
 def colour_image(image: Tensor | None) -> Tensor | None:
@@ -458,10 +458,9 @@ def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     # fit_posture hangs the skeleton from the root part; with its rotations fixed, the
     # translation nearest (least squares) to every estimated landmark is that plus the mean
     # gap (the parts' ends drift a few cm along a chain of bones of fixed length)
-    origin = posture.fk.positions[:, 0]
-    placed = place_poses(posture.rotations[:, 0], origin, ref.posture_poses(posture.rotations))
+    placed = ref.spec.poses(ref.model, ref.skeleton, posture.fk)  # (T', P, 7), unit size
     gap = observed - ref.spec.landmarks(placed)
-    return posture.rotations, (origin + gap.mean((-3, -2))) * g
+    return posture.rotations, (posture.fk.positions[:, 0] + gap.mean((-3, -2))) * g
 
 
 def refine(

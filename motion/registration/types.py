@@ -31,7 +31,20 @@ from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.kinematics import FKResult, Skeleton, forward_kinematics, local_rotations
 
-__all__ = ["Reference", "Registration", "RegistrationError", "VideoFeatures", "scaled_spec"]
+__all__ = [
+    "FRAME_CHUNK",
+    "Reference",
+    "Registration",
+    "RegistrationError",
+    "VideoFeatures",
+    "scaled_spec",
+]
+
+#: video frames processed at once wherever a stage derives something per frame of a whole
+#: video (stage 1's distance maps and silhouette draws, the part colours, the fit score):
+#: each frame's result is its own, so chunks give the same entries while bounding a long
+#: video's intermediates (float maps, label maps, colour images) to a few tens of MB
+FRAME_CHUNK = 64
 
 
 class RegistrationError(ValueError):

@@ -325,7 +325,7 @@ def test_scene_built_in_chunks_of_frames_is_the_same(reference, fixture, request
     video = _video(request.getfixturevalue(fixture))
     scenes, states = [], []
     for chunk in (1000, 5):  # all 72 frames at once; then 15 chunks, the last one short
-        monkeypatch.setattr(approximate, "SCENE_CHUNK", chunk)
+        monkeypatch.setattr(approximate, "FRAME_CHUNK", chunk)
         g = torch.Generator().manual_seed(4)
         scenes.append(approximate._build_scene(reference, video, 1.0, Stage1Settings(), g))
         states.append(g.get_state())
