@@ -127,6 +127,9 @@ class RegisterLongConfig(ExperimentConfig):
     final_refine_starts: int = setting(2, "stage 1: starts refined for the final T", ge=1)
     final_iterations: int = setting(20, "stage 1: LM iterations of the final T", ge=1)
     smooth_rounds: int = setting(1, "stage 1: warm-started rounds of the final T", ge=0)
+    beam: int = setting(
+        7, "stage 1: the alignment's tracking half-width, reference frames (0: none)", ge=0
+    )
     # stages 2-3
     particles: int = setting(50, "particles per part (stages 2-3)", ge=2, le=2000)
     iterations: int = setting(3, "particle BP iterations per run", ge=1, le=50)
@@ -302,6 +305,7 @@ def _settings(cfg: RegisterLongConfig) -> RegistrationSettings:
         final_refine_starts=min(cfg.final_refine_starts, cfg.final_yaw_starts),
         final_iterations=cfg.final_iterations,
         smooth_rounds=cfg.smooth_rounds,
+        beam=cfg.beam,
     )
     if cfg.overlap >= cfg.window:
         raise ConfigError(f"overlap must be < window ({cfg.window}); got {cfg.overlap}")

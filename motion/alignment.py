@@ -422,6 +422,7 @@ def coarse_to_fine_align(
     pool_stride: int | None = None,
     margin: float = 0.0,
     beam: int | None = None,
+    prune: float = 0.0,
 ) -> Alignment:
     """Monotone alignment of long sequences without the full T' x T cost matrix.
 
@@ -442,11 +443,17 @@ def coarse_to_fine_align(
       rows everything monotone paths through those cells can reach, plus ``radius`` cells
       around the interpolated best path. The band widens exactly where the coarse level
       cannot tell alternatives apart.
-    * **Tracking.** A level whose rows are close enough for the step bound to fix a periodic
-      motion's rate (its coarser levels are not: every cycle looks alike there) extends its
-      band along its own best partial path (a forward pass in chunks of rows, ``beam`` cells
-      around where that path, continued at its recent slope, goes), so the band follows the
-      motion instead of forcing the path off phase where the motion drifts out of it.
+    * **Tracking.** The two finest levels, whose rows (at most ``factor`` video frames apart)
+      are close enough for the step bound to fix a periodic motion's rate (coarser levels'
+      are not: rows half a cycle or more apart see every cycle alike, and tracking there
+      only widens the band: on a 2-minute walk, 2.9 times that level's cost evaluations),
+      extend their band along their own best partial paths (a forward pass in chunks of
+      rows, ``beam`` cells around where each path, continued at its recent slope, goes: the
+      best one, and the next best within ``prune``), so the band follows the motion instead
+      of forcing the path off phase where the motion drifts out of it. Only the coarser band
+      and the beams are evaluated, not the cells between them, so the cost per row stays
+      bounded however far (e.g. whole loops of a repeating reference) a beam wanders from
+      the coarser band.
 
     Work: about ``T'`` times the band width cost evaluations per level (a cell of F frames
     costs ``F / g`` evaluations, g the pooling stride), plus ``(T' / F_L) T / g`` at the
@@ -490,6 +497,9 @@ def coarse_to_fine_align(
             (they tie at the coarse levels); but where cycles are identical (a reference that
             repeats one loop) every cycle ties and the band grows towards the full matrix.
         beam: tracking half-width in cells (default ``radius``); 0 turns tracking off.
+        prune: tracking keeps a beam around the next best partial path too where its score is
+            within this of the best one's (in units of tau, as ``margin``); 0 (default): around
+            the best one only.
 
     Returns:
         :class:`Alignment` with ``path`` (1, T') and ``cost`` (1,): the sum of the (robust,
@@ -518,6 +528,8 @@ def coarse_to_fine_align(
     beam = radius if beam is None else beam
     if isinstance(beam, bool) or not isinstance(beam, int) or beam < 0:
         raise AlignmentError(f"beam must be None or an int >= 0; got {beam!r}")
+    if not (prune >= 0 and math.isfinite(prune)):
+        raise AlignmentError(f"prune must be a finite number >= 0; got {prune}")
     if step_cost is not None:
         step_cost = _step_factor(max_step, step_cost).step_log_potential.neg()  # validated
     levels = _Levels(
@@ -536,6 +548,7 @@ def coarse_to_fine_align(
         pool_stride,
         margin,
         beam,
+        prune,
     )
     path, total = levels.solve(threshold)
     return Alignment(path.unsqueeze(0), total.reshape(1))
@@ -608,7 +621,9 @@ class _Levels:
     pool_stride: int | None
     margin: float
     beam: int
+    prune: float
     chunk: int = 16  # rows per tracking step
+    runs: int = 2  # most partial paths (runs of ends) tracking keeps a beam around
 
     def estimate_stride(self, threshold: float | None, tolerance: float = 0.05) -> int:
         """The coarsest pooling grid that loses little. Two probe rows (the video frames at
@@ -739,12 +754,13 @@ class _Levels:
 
     def track(
         self, scale: int, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
         """The band ``[lo, hi]`` (costs ``raw``) extended along this level's best partial
         path: a forward pass over chunks of ``chunk`` rows; before each chunk the best
         partial path's end is continued at the slope it had over the last chunk, and the
-        chunk's rows get ``beam`` cells either side of that line. Returns the new band and
-        its costs (only the new cells are evaluated)."""
+        chunk's rows get ``beam`` cells either side of that line. Returns the new band, its
+        costs and which of them were evaluated (``None``: the band did not grow): the coarse
+        band and the beam around the line, not the cells between the two."""
         n, s, r, h = len(lo), self.max_step, self.beam, self.chunk
         window_lp = self.step_lp()[::-1].copy()
         lo_np, hi_np = lo.numpy(), hi.numpy()
@@ -753,23 +769,29 @@ class _Levels:
         unary0 = np.where(inside, -self.shape(raw, threshold)[0].numpy(), -np.inf)
         raw_np = raw.numpy()
         new_lo, new_hi = lo_np.copy(), hi_np.copy()
-        tables: list[tuple[int, np.ndarray]] = []  # (first row, raw costs over the new band)
+        # (first row, raw costs over the new band, which of them were evaluated)
+        tables: list[tuple[int, np.ndarray, np.ndarray]] = []
         grown = False
         alpha = prev_lo = None
         slope = 0.0
         for v0 in range(0, n, h):
             v1 = min(n, v0 + h)
             rows = np.arange(v0, v1)
+            beams: list[tuple[np.ndarray, np.ndarray]] = []  # (first, last) cell per row
             if v0 > 0:
-                best = prev_lo + int(alpha.argmax())
-                c = np.round(best + slope * (rows - v0 + 1)).astype(np.int64)
-                # only where that line comes within beam / 2 of the band's edge
-                near_lo = c - r // 2 < lo_np[rows]
-                near_hi = c + r // 2 > hi_np[rows]
-                nlo = np.where(near_lo, np.minimum(lo_np[rows], c - r), lo_np[rows])
+                step = np.round(slope * (rows - v0 + 1)).astype(np.int64)
+                nlo, nhi = lo_np[rows].copy(), hi_np[rows].copy()
+                for a0, a1 in self.survivors(alpha, prev_lo, threshold):
+                    # each kept partial path's run of ends, continued at the slope, with
+                    # beam cells either side, where it comes within beam / 2 of an edge
+                    near_lo = a0 + step - r // 2 < lo_np[rows]
+                    near_hi = a1 + step + r // 2 > hi_np[rows]
+                    first, last = a0 + step - r, a1 + step + r
+                    beams.append((np.where(near_lo | near_hi, first, last + 1), last))
+                    nlo = np.where(near_lo, np.minimum(nlo, first), nlo)
+                    nhi = np.where(near_hi, np.maximum(nhi, last), nhi)
                 nlo = np.maximum(nlo, new_lo[v0 - 1])
                 new_lo[rows] = np.maximum.accumulate(np.clip(nlo, 0, m - 1))
-                nhi = np.where(near_hi, np.maximum(hi_np[rows], c + r), hi_np[rows])
                 # and no higher than the previous row's band lets a step reach
                 reach = np.minimum.accumulate(
                     np.append(new_hi[v0 - 1], nhi) - s * np.arange(len(rows) + 1)
@@ -783,29 +805,43 @@ class _Levels:
             rr = np.broadcast_to(np.arange(len(rows))[:, None], cols.shape)
             raw_c = np.full((len(rows), width), np.inf)
             raw_c[rr[keep], cols[keep]] = raw_np[rows][keep]
+            known_c = np.zeros((len(rows), width), dtype=bool)
+            known_c[rr[keep], cols[keep]] = True
             unary = np.full((len(rows), width), -np.inf)
             unary[rr[keep], cols[keep]] = unary0[rows][keep]
-            # the new cells: left of the coarse band, then right of it, in one call
-            part_lo = np.concatenate([nlo, np.maximum(hi_np[rows] + 1, nlo)])
-            part_hi = np.concatenate([np.minimum(lo_np[rows] - 1, nhi), nhi])
-            start = np.concatenate([np.zeros_like(nlo), hi_np[rows] + 1 - nlo])
+            # the new cells: each beam's part left of the coarse band and right of it, in one
+            # call; cells between the beams and the coarse band stay out (a path a few loops
+            # off the coarse band would otherwise cost every cell between them)
+            part_lo, part_hi = [], []
+            for first, last in beams:
+                part_lo += [
+                    np.maximum(first, nlo),
+                    np.maximum(np.maximum(first, nlo), hi_np[rows] + 1),
+                ]
+                part_hi += [
+                    np.minimum(np.minimum(last, nhi), lo_np[rows] - 1),
+                    np.minimum(last, nhi),
+                ]
+            part_lo = np.concatenate(part_lo) if beams else np.zeros(0, dtype=np.int64)
+            part_hi = np.concatenate(part_hi) if beams else np.zeros(0, dtype=np.int64)
             sel = np.nonzero(part_hi >= part_lo)[0]
             if len(sel):
                 grown = True
                 got = self.evaluate(
                     scale,
-                    torch.from_numpy(np.concatenate([rows, rows])[sel]),
+                    torch.from_numpy(np.tile(rows, 2 * len(beams))[sel]),
                     torch.from_numpy(part_lo[sel]),
                     torch.from_numpy(part_hi[sel]),
                 )
                 shaped = -self.shape(got, threshold)[0].numpy()
                 k = np.arange(got.shape[1])
                 ok = k[None] <= (part_hi - part_lo)[sel, None]
-                cc = start[sel, None] + k
-                ri = np.broadcast_to(sel[:, None] % len(rows), cc.shape)
+                ri = np.broadcast_to(sel[:, None] % len(rows), ok.shape)
+                cc = (part_lo[sel] - nlo[sel % len(rows)])[:, None] + k
                 raw_c[ri[ok], cc[ok]] = got.numpy()[ok]
                 unary[ri[ok], cc[ok]] = shaped[ok]
-            tables.append((v0, raw_c))
+                known_c[ri[ok], cc[ok]] = True
+            tables.append((v0, raw_c, known_c))
             if v0 == 0:
                 if self.fix_start:
                     unary[0, nlo[0] + np.arange(width) != 0] = -np.inf
@@ -833,11 +869,36 @@ class _Levels:
                 )
             prev_lo = int(nlo[-1])
         if not grown:
-            return lo, hi, raw
-        table = torch.full((n, int((new_hi - new_lo).max()) + 1), math.inf, dtype=torch.float64)
-        for v0, raw_c in tables:
+            return lo, hi, raw, None
+        size = (n, int((new_hi - new_lo).max()) + 1)
+        table = torch.full(size, math.inf, dtype=torch.float64)
+        known = torch.zeros(size, dtype=torch.bool)
+        for v0, raw_c, known_c in tables:
             table[v0 : v0 + len(raw_c), : raw_c.shape[1]] = torch.from_numpy(raw_c)
-        return torch.from_numpy(new_lo), torch.from_numpy(new_hi), table
+            known[v0 : v0 + len(raw_c), : raw_c.shape[1]] = torch.from_numpy(known_c)
+        return torch.from_numpy(new_lo), torch.from_numpy(new_hi), table, known
+
+    def survivors(self, alpha: np.ndarray, first: int, threshold: float) -> list[tuple[int, int]]:
+        """Runs ``(a0, a1)`` of positions (``first`` + index) whose forward score ``alpha``
+        is within ``prune`` (units of tau) of the best, runs closer than ``2 beam + 1``
+        merged, the ``runs`` best of them (the best one's always): the partial paths
+        tracking keeps a beam around."""
+        unit = 1.0 if self.robust else threshold
+        finite = np.isfinite(alpha)
+        if not finite.any():
+            return []
+        kept = np.nonzero(alpha >= alpha[finite].max() - self.prune * unit)[0]
+        cuts = np.nonzero(np.diff(kept) > 2 * self.beam + 1)[0]
+        starts = np.concatenate([[0], cuts + 1])
+        ends = np.concatenate([cuts, [len(kept) - 1]])
+        # identical loop copies tie forever once reached: only the best ``runs`` runs keep
+        # a beam, so that the band stays a bounded number of beams wide however long the
+        # sequence is
+        score = [
+            float(alpha[kept[a] : kept[b] + 1].max()) for a, b in zip(starts, ends, strict=True)
+        ]
+        best = sorted(np.argsort(score, kind="stable")[::-1][: self.runs])
+        return [(first + int(kept[starts[i]]), first + int(kept[ends[i]])) for i in best]
 
     def step_lp(self) -> np.ndarray:
         """``(S + 1,)`` log-potential of each step size."""
@@ -846,14 +907,23 @@ class _Levels:
         return self.step_cost.double().neg().numpy()
 
     def unary(
-        self, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float | None
+        self,
+        raw: Tensor,
+        lo: Tensor,
+        hi: Tensor,
+        m: int,
+        threshold: float | None,
+        known: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, float]:
-        """``(1, N, W)`` log-potentials of a band (``-inf`` outside it and off fixed ends),
-        the shaped costs and the threshold."""
+        """``(1, N, W)`` log-potentials of a band (``-inf`` outside it, at cells not
+        ``known`` if given, and off fixed ends), the shaped costs and the threshold."""
         _check_cost(raw)
         cost, threshold = self.shape(raw, threshold)
         cols = torch.arange(raw.shape[1])
-        unary = torch.where(cols <= (hi - lo)[:, None], -cost, -math.inf).unsqueeze(0)
+        inside = cols <= (hi - lo)[:, None]
+        if known is not None:
+            inside = inside & known
+        unary = torch.where(inside, -cost, -math.inf).unsqueeze(0)
         if self.fix_start:
             unary[:, 0] = unary[:, 0].masked_fill(lo[0] + cols != 0, -math.inf)
         if self.fix_end:
@@ -877,9 +947,10 @@ class _Levels:
             else:
                 lo, hi = self.band(n, m, coarse, keep_lo, keep_hi)
             raw = self.evaluate(scale, torch.arange(n), lo, hi)
-            if coarse is not None and self.beam > 0:
-                lo, hi, raw = self.track(scale, raw, lo, hi, m, threshold)
-            unary, cost, threshold = self.unary(raw, lo, hi, m, threshold)
+            known = None
+            if coarse is not None and self.beam > 0 and scale <= self.factor:
+                lo, hi, raw, known = self.track(scale, raw, lo, hi, m, threshold)
+            unary, cost, threshold = self.unary(raw, lo, hi, m, threshold, known)
             step = None if self.step_cost is None else -self.step_cost
             try:
                 result = chain_map(

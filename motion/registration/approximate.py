@@ -140,6 +140,11 @@ class Stage1Settings:
         step_factor: ``max_step = ceil(step_factor * reference.frame_rate / video.frame_rate)``.
         factor, radius, max_cells: coarse-to-fine subsampling factor, band half-width in
             reference frames (``None``: ``max_step + factor``), cells solved directly.
+        beam, prune: the finest levels' tracking of the best partial paths: half-width in
+            reference frames (``None``: ``radius``; 0: no tracking) and how close (threshold
+            units) the next best path must be to keep a beam of its own (0: none). On the
+            synthetic walk with one camera, ``prune=1`` found lower-cost paths further from
+            the truth (stage 1's C 9.7 vs 6.6 reference frames, 30 % more pairs).
         robust, robust_scale: truncation of pair costs at ``robust_scale`` x the median row
             minimum, so a bad stretch cannot pull the path.
         slope_weight: quadratic slope prior around the frame-rate ratio (threshold units).
@@ -202,6 +207,8 @@ class Stage1Settings:
     factor: int = 4
     radius: int | None = None
     max_cells: int = 2000
+    beam: int | None = None
+    prune: float = 0.0
     robust: str = "truncate"
     robust_scale: float = 2.0
     slope_weight: float = 0.02
@@ -256,6 +263,12 @@ class Stage1Settings:
         ):
             raise RegistrationError(
                 f"Stage1Settings.radius must be None or an int >= 1; got {self.radius!r}"
+            )
+        if self.beam is not None and (
+            isinstance(self.beam, bool) or not isinstance(self.beam, int) or self.beam < 0
+        ):
+            raise RegistrationError(
+                f"Stage1Settings.beam must be None or an int >= 0; got {self.beam!r}"
             )
         for name in ("fix_start", "fix_end"):
             if not isinstance(getattr(self, name), bool):
@@ -1697,6 +1710,8 @@ def approximate_registration(
             step_cost=slope_cost,
             robust=st.robust,
             robust_scale=st.robust_scale,
+            beam=st.beam,
+            prune=st.prune,
         )
     except AlignmentError as err:
         raise RegistrationError(f"stage 1 time alignment failed: {err}") from err

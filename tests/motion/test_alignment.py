@@ -465,3 +465,33 @@ def test_alignment_input_errors():
     ]:
         with pytest.raises(AlignmentError, match=re.escape(message)):
             coarse_to_fine_align(fn, 30, 40, 2, **kwargs)
+
+
+def test_tracking_follows_a_path_off_the_coarse_band_at_a_bounded_cost_per_row():
+    """The finest level's tracking, given a coarse band around reference frame 3 t' while
+    the costs' valley runs along 3.5 t' (the coarse level lost the motion's rate): the band
+    must follow the valley to its end (200 frames off the coarse band), and each row must
+    cost only the coarse band plus the beams (``runs`` of ``2 beam + 1`` cells, cost
+    calls padded by at most 1/8), not every cell between the valley and the coarse band."""
+    from motion.alignment import _Levels
+
+    n, m, s, beam = 400, 1500, 6, 10
+    asked = torch.zeros(n, dtype=torch.long)
+
+    def fn(rows, cols):
+        asked.index_add_(0, rows, torch.full_like(rows, cols.shape[1]))
+        return ((cols - 3.5 * rows[:, None]).abs() / 5).clamp(max=2.0)
+
+    levels = _Levels(fn, n, m, s, 4, 10, 1, False, False, "truncate", 2.0, None, 1, 0.0, beam, 1.0)
+    v = torch.arange(n)
+    lo, hi = (3 * v - 10).clamp(min=0), 3 * v + 10
+    raw = levels.evaluate(1, v, lo, hi)
+    coarse = asked.clone()
+    new_lo, new_hi, table, known = levels.track(1, raw, lo, hi, m, 1.0)
+    at = (3.5 * v).round().long()
+    assert bool(((new_lo <= at) & (at <= new_hi)).all())
+    assert bool(known.gather(1, (at - new_lo)[:, None]).all())
+    assert float(table.gather(1, (at - new_lo)[:, None]).max()) < 0.2  # half a frame / 5
+    extra = asked - coarse
+    assert int(extra.max()) <= math.ceil(levels.runs * (2 * beam + 1) * 9 / 8)
+    assert int((new_hi - new_lo).max()) > 200  # the band spans both; only the beams cost
