@@ -130,6 +130,9 @@ class RegisterLongConfig(ExperimentConfig):
     beam: int = setting(
         7, "stage 1: the alignment's tracking half-width, reference frames (0: none)", ge=0
     )
+    prune: float = setting(
+        1.0, "stage 1: a beam for the next best partial path within this (threshold units)", ge=0
+    )
     # stages 2-3
     particles: int = setting(50, "particles per part (stages 2-3)", ge=2, le=2000)
     iterations: int = setting(3, "particle BP iterations per run", ge=1, le=50)
@@ -306,6 +309,7 @@ def _settings(cfg: RegisterLongConfig) -> RegistrationSettings:
         final_iterations=cfg.final_iterations,
         smooth_rounds=cfg.smooth_rounds,
         beam=cfg.beam,
+        prune=cfg.prune,
     )
     if cfg.overlap >= cfg.window:
         raise ConfigError(f"overlap must be < window ({cfg.window}); got {cfg.overlap}")

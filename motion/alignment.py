@@ -686,7 +686,9 @@ class _Levels:
             return cost, threshold
         return robust_cost(cost, threshold, self.robust) / threshold, threshold
 
-    def evaluate(self, scale: int, rows: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    def evaluate(
+        self, scale: int, rows: Tensor, lo: Tensor, hi: Tensor, one_call: bool = False
+    ) -> Tensor:
         """``(R, W)`` costs of cells ``lo..hi`` of level rows ``rows`` in windows
         ``lo + [0, W)`` (``+inf`` outside; rows with ``hi < lo`` are empty). Row v is video
         frame ``v * scale``; cell j is reference frames ``[j scale, (j + 1) scale)`` and costs
@@ -698,6 +700,8 @@ class _Levels:
         first = lo * scale
         last = torch.clamp((hi + 1) * scale, max=self.num_ref) - 1
         bucket = _bucket((last - first) // g + 1)  # reference frames evaluated per row
+        if one_call:  # every row padded to the widest: one cost_fn call
+            bucket = bucket.max().expand(len(bucket)).clone()
         bucket[hi < lo] = 0
         for size in torch.unique(bucket[bucket > 0]).tolist():
             sel = (bucket == size).nonzero().flatten()
@@ -827,11 +831,15 @@ class _Levels:
             sel = np.nonzero(part_hi >= part_lo)[0]
             if len(sel):
                 grown = True
+                # one call per chunk: pieces of a few cells each in calls of their own cost
+                # more in per-call overhead (and, with stage 1's pair fitter, in full-start
+                # fits of narrow windows) than the padding does
                 got = self.evaluate(
                     scale,
                     torch.from_numpy(np.tile(rows, 2 * len(beams))[sel]),
                     torch.from_numpy(part_lo[sel]),
                     torch.from_numpy(part_hi[sel]),
+                    one_call=True,
                 )
                 shaped = -self.shape(got, threshold)[0].numpy()
                 k = np.arange(got.shape[1])
