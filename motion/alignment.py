@@ -701,7 +701,7 @@ class _Levels:
         last = torch.clamp((hi + 1) * scale, max=self.num_ref) - 1
         bucket = _bucket((last - first) // g + 1)  # reference frames evaluated per row
         if one_call:  # every row padded to the widest: one cost_fn call
-            bucket = bucket.max().expand(len(bucket)).clone()
+            bucket = torch.full_like(bucket, int(bucket.max()))
         bucket[hi < lo] = 0
         for size in torch.unique(bucket[bucket > 0]).tolist():
             sel = (bucket == size).nonzero().flatten()
@@ -760,11 +760,11 @@ class _Levels:
         self, scale: int, raw: Tensor, lo: Tensor, hi: Tensor, m: int, threshold: float
     ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
         """The band ``[lo, hi]`` (costs ``raw``) extended along this level's best partial
-        path: a forward pass over chunks of ``chunk`` rows; before each chunk the best
-        partial path's end is continued at the slope it had over the last chunk, and the
-        chunk's rows get ``beam`` cells either side of that line. Returns the new band, its
-        costs and which of them were evaluated (``None``: the band did not grow): the coarse
-        band and the beam around the line, not the cells between the two."""
+        paths (:meth:`survivors`): a forward pass over chunks of ``chunk`` rows; before each
+        chunk each kept path's ends are continued at the slope the best path had over the
+        last chunk, and the chunk's rows get ``beam`` cells either side of them. Returns the
+        new band, its costs and which of them were evaluated (``None``: the band did not
+        grow): the coarse band and the beams, not the cells between them."""
         n, s, r, h = len(lo), self.max_step, self.beam, self.chunk
         window_lp = self.step_lp()[::-1].copy()
         lo_np, hi_np = lo.numpy(), hi.numpy()
@@ -818,14 +818,9 @@ class _Levels:
             # off the coarse band would otherwise cost every cell between them)
             part_lo, part_hi = [], []
             for first, last in beams:
-                part_lo += [
-                    np.maximum(first, nlo),
-                    np.maximum(np.maximum(first, nlo), hi_np[rows] + 1),
-                ]
-                part_hi += [
-                    np.minimum(np.minimum(last, nhi), lo_np[rows] - 1),
-                    np.minimum(last, nhi),
-                ]
+                first, last = np.maximum(first, nlo), np.minimum(last, nhi)
+                part_lo += [first, np.maximum(first, hi_np[rows] + 1)]
+                part_hi += [np.minimum(last, lo_np[rows] - 1), last]
             part_lo = np.concatenate(part_lo) if beams else np.zeros(0, dtype=np.int64)
             part_hi = np.concatenate(part_hi) if beams else np.zeros(0, dtype=np.int64)
             sel = np.nonzero(part_hi >= part_lo)[0]

@@ -258,18 +258,14 @@ class Stage1Settings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise RegistrationError(f"Stage1Settings.{name} must be an int >= 0; got {value!r}")
-        if self.radius is not None and (
-            isinstance(self.radius, bool) or not isinstance(self.radius, int) or self.radius < 1
-        ):
-            raise RegistrationError(
-                f"Stage1Settings.radius must be None or an int >= 1; got {self.radius!r}"
-            )
-        if self.beam is not None and (
-            isinstance(self.beam, bool) or not isinstance(self.beam, int) or self.beam < 0
-        ):
-            raise RegistrationError(
-                f"Stage1Settings.beam must be None or an int >= 0; got {self.beam!r}"
-            )
+        for name, least in (("radius", 1), ("beam", 0)):
+            value = getattr(self, name)
+            if value is not None and (
+                isinstance(value, bool) or not isinstance(value, int) or value < least
+            ):
+                raise RegistrationError(
+                    f"Stage1Settings.{name} must be None or an int >= {least}; got {value!r}"
+                )
         for name in ("fix_start", "fix_end"):
             if not isinstance(getattr(self, name), bool):
                 raise RegistrationError(
