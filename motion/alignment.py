@@ -906,20 +906,24 @@ class _Levels:
         best = sorted(np.argsort(score, kind="stable")[::-1][: self.runs])
         return [(first + int(kept[starts[i]]), first + int(kept[ends[i]])) for i in best]
 
+    def level_step_cost(self, scale: int) -> Tensor | None:
+        """``(S + 1,)`` cost of each step size at the level of cells of ``scale`` frames
+        (``None`` without a slope prior): ``scale`` times the step cost, since a step between
+        two of its rows stands for ``scale`` steps of the finest level at that slope (the
+        least they cost, the step cost being convex). Counted once per row, a level's slope
+        prior would be ``scale`` times weaker than the finest's against its costs: where
+        those say little (cells of a cycle or more of a periodic motion all match), coarse
+        paths would start anywhere and run at any slope, and the finer bands around them drop
+        or gain whole cycles to follow (a 2-minute walk against its loop repeated, warp seed
+        0: 48 % in phase, 91 % with the scaled prior; seeds 1 and 2 lost a little, 78 -> 72 %
+        and 85 -> 76 %: a prior held coarse path lags a student who runs fast for a while)."""
+        return None if self.step_cost is None else scale * self.step_cost
+
     def step_lp(self, scale: int) -> np.ndarray:
         """``(S + 1,)`` log-potential of each step size at the level of cells of ``scale``
-        frames: ``scale`` times the step cost, since a step between two of its rows stands
-        for ``scale`` steps of the finest level at that slope (the least they cost, the step
-        cost being convex). Counted once per row, a level's slope prior would be ``scale``
-        times weaker than the finest's against its costs: where those say little (cells of a
-        cycle or more of a periodic motion all match), coarse paths would start anywhere and
-        run at any slope, and the finer bands around them drop or gain whole cycles to
-        follow (a 2-minute walk against its loop repeated, warp seed 0: 48 % in phase, 91 %
-        with the scaled prior; seeds 1 and 2 lost a little, 78 -> 72 % and 85 -> 76 %: a
-        prior held coarse path lags a student who runs fast for a while)."""
-        if self.step_cost is None:
-            return np.zeros(self.max_step + 1)
-        return scale * self.step_cost.double().neg().numpy()
+        frames (:meth:`level_step_cost`)."""
+        cost = self.level_step_cost(scale)
+        return np.zeros(self.max_step + 1) if cost is None else cost.double().neg().numpy()
 
     def unary(
         self,
@@ -966,7 +970,8 @@ class _Levels:
             if coarse is not None and self.beam > 0 and scale <= self.factor:
                 lo, hi, raw, known = self.track(scale, raw, lo, hi, m, threshold)
             unary, cost, threshold = self.unary(raw, lo, hi, m, threshold, known)
-            step = None if self.step_cost is None else -scale * self.step_cost
+            cost_of_step = self.level_step_cost(scale)
+            step = None if cost_of_step is None else -cost_of_step
             try:
                 result = chain_map(
                     unary.clone(), BandedMonotoneFactor(self.max_step, lo, step), overwrite=True
