@@ -915,8 +915,9 @@ class _Levels:
         those say little (cells of a cycle or more of a periodic motion all match), coarse
         paths would start anywhere and run at any slope, and the finer bands around them drop
         or gain whole cycles to follow (a 2-minute walk against its loop repeated, warp seed
-        0: 48 % in phase, 91 % with the scaled prior; seeds 1 and 2 lost a little, 78 -> 72 %
-        and 85 -> 76 %: a prior held coarse path lags a student who runs fast for a while)."""
+        0: 48 % in phase, 91 % with the scaled prior; seeds 1 and 2: 78 -> 72 % and 85 -> 76 %,
+        where the path changes copy of the loop at places the pair costs hardly tell from the
+        truth: README, "A long input")."""
         return None if self.step_cost is None else scale * self.step_cost
 
     def step_lp(self, scale: int) -> np.ndarray:
