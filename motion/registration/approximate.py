@@ -1494,7 +1494,9 @@ def estimate_body_scale(
     postures: where the student's articulation or a wrong best reference frame biases one
     frame's fit, its neighbours share that bias and a median of consecutive frames keeps it
     (the synthetic walk, 2 cameras, true G = 1, warp seeds 0/1/2: the first 8 frames gave
-    0.975 / 1.006 / 1.000, 8 spread frames 1.006 / 0.997 / 0.998). Each frame is fitted (``T`` at G = 1) against ``settings.scale_reference_frames``
+    0.975 / 1.006 / 1.000, 8 spread frames 1.006 / 0.997 / 0.998).
+
+    Each frame is fitted (``T`` at G = 1) against ``settings.scale_reference_frames``
     reference frames evenly spaced over the motion, then against every reference frame
     around its best one; at its best pair, ``T`` and a scale factor are refined together
     (``settings.scale_rounds`` times, each at the previous estimate); G is the median over
@@ -1574,8 +1576,8 @@ def estimate_body_scale(
     spread = float(log_s.exp().std()) if nf > 1 else 0.0
     how = "orthographic cameras" if rig.orthographic else f"{rig.num_cameras} calibrated cameras"
     return g_est, (
-        f"G = {g_est:.3f} estimated from {how}: median over {nf} video frames spread evenly over the video of a "
-        f"rigid fit with free scale at each frame's best reference frame (of {len(ref)} evenly "
+        f"G = {g_est:.3f} estimated from {how}: median over {nf} video frames spread evenly "
+        f"over the video of a rigid fit with free scale at each frame's best reference frame (of {len(ref)} evenly "
         "spaced, then their neighbours) "
         f"(relative spread {spread:.3f})"
     )
