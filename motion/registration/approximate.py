@@ -123,16 +123,31 @@ class Stage1Settings:
         depth_prior: weight (per metre^2, relative to a ray's perpendicular error) of the
             depth guessed from the silhouette's pixel height when the starts' position is
             triangulated from the silhouette centroids (alone decisive with one camera).
+        clipped_depths: where a silhouette touches the image's top or bottom edge (the
+            person partly out of view), its pixel height is only a lower bound of the body's,
+            so the depth it gives is too far: starts are screened at each of these fractions
+            of that depth, the body hung from the silhouette's edge that is in view. Model
+            points outside the image cost nothing in any case (they are not observed). On
+            the synthetic walk, one camera, whose feet leave the image in the last 30 % of
+            the frames, the fits at the true pairs there were 2-4x the cost of the true ``T``
+            and up to 105 degrees off without them.
         heading_weight: a prior, not an image term: people move the way the reference
             moves. Where the person travels (the track of root positions from rigid fits
             against ``yaw_starts`` evenly spaced reference frames, velocity over
             ``heading_window`` seconds; those fits count as pair evaluations) and the root
             moves (in its own frame, turned by the candidate's ``R``) both faster than
-            ``heading_speed`` m/s, a candidate pays ``heading_weight * (1 - cos angle) / 2``
-            between the two horizontal directions. It breaks the mirror ambiguity of
-            silhouettes (the body turned 180 degrees with the legs swapped looks the same from
-            the front), which otherwise lets a whole walk lock half a gait cycle off; 0
+            ``heading_speed`` m/s, a candidate whose two horizontal directions differ by
+            more than ``heading_tolerance_deg`` pays up to ``heading_weight`` (at 180 degrees;
+            linear in the angle's cosine beyond the tolerance). It breaks the mirror ambiguity
+            of silhouettes (the body turned 180 degrees with the legs swapped looks the same
+            from the front), which otherwise lets a whole walk lock half a gait cycle off; 0
             disables it. It ranks starts and candidates, the LM fits the image cost alone.
+        heading_tolerance_deg: the prior tells front from back, not the exact heading: a
+            person turning, side-stepping or swaying moves up to tens of degrees away from
+            where the reference's root moves. On the synthetic walk (turned 30 degrees over the
+            video about its first position, so the path swings sideways) the true ``T`` was up
+            to 45 degrees off the track; penalised from 0 degrees, that outweighed the image
+            cost at the true pairs 2-5 times in the last third of the frames.
         reference_up, reference_forward: the reference's up and facing axes in ``B_t``
             (BVH: +Y up; the facing axis only orients yaw 0).
 
@@ -198,9 +213,11 @@ class Stage1Settings:
     outline_side: int = 2
     outline_arc: int = 2
     depth_prior: float = 0.05
+    clipped_depths: tuple[float, ...] = (1.0, 0.85, 0.7, 0.55)
     heading_weight: float = 2e-3
     heading_speed: float = 0.3
     heading_window: float = 0.5
+    heading_tolerance_deg: float = 60.0
     reference_up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     reference_forward: tuple[float, float, float] = (0.0, 0.0, 1.0)
     step_factor: float = 2.0
@@ -273,6 +290,21 @@ class Stage1Settings:
                 )
         if self.factor < 2:
             raise RegistrationError(f"Stage1Settings.factor must be >= 2; got {self.factor}")
+        if not self.heading_tolerance_deg < 180:
+            raise RegistrationError(
+                "Stage1Settings.heading_tolerance_deg must be in [0, 180); got "
+                f"{self.heading_tolerance_deg!r}"
+            )
+        depths = self.clipped_depths
+        if not (
+            isinstance(depths, tuple)
+            and depths
+            and all(isinstance(f, int | float) and 0 < f <= 1 for f in depths)
+        ):
+            raise RegistrationError(
+                "Stage1Settings.clipped_depths must be a non-empty tuple of fractions in (0, 1]; "
+                f"got {depths!r}"
+            )
         if self.robust not in ("truncate", "saturate"):
             raise RegistrationError(
                 f"Stage1Settings.robust must be 'truncate' or 'saturate'; got {self.robust!r}"
@@ -380,11 +412,15 @@ class _Scene:
         obs: ``(T', C, M, 2)`` subsampled silhouette pixels; obs_w ``(T', C, M)`` weights
             (summing to 1 per valid image, 0 for padding).
         height: ``(T', C)`` silhouette pixel height; cam_w ``(T', C)`` 1 where the camera
-            sees a silhouette; centroid ``(T', C, 2)`` silhouette centroid (px).
+            sees a silhouette; centroid ``(T', C, 2)`` silhouette centroid (px); top_v,
+            bottom_v ``(T', C)`` its first and last rows; clipped ``(T', C, 2)`` bool, it
+            touches the image's top / bottom edge.
         keypoints: ``(T', C, K, 3)`` or ``None``; kp_joints ``(K,)`` long skeleton joints.
         landmarks: ``(T, P, 2, 3)`` capsule ends of ``B_t`` at scale G (metres);
             radii ``(P, 2)`` metres; joints ``(T, J, 3)``.
-        centre_b: ``(T, 3)`` body centroid in ``B_t``; extent_b ``(T,)`` height along up.
+        centre_b: ``(T, 3)`` body centroid in ``B_t``; extent_b ``(T,)`` height along up;
+            centre_from_top ``(T,)`` the centroid's depth below the body's top, a fraction
+            of extent_b.
         K, R, t: ``(C, 3, 3)``, ``(C, 3, 3)``, ``(C, 3)`` cameras; orthographic; H, W.
         up, forward: ``(3,)`` world up (from the cameras) and yaw-0 facing direction.
         video_rate: Hz. track: ``(T', 3)`` the person's root position per video frame from
@@ -408,6 +444,9 @@ class _Scene:
     height: Tensor
     cam_w: Tensor
     centroid: Tensor
+    top_v: Tensor
+    bottom_v: Tensor
+    clipped: Tensor
     keypoints: Tensor | None
     kp_joints: Tensor | None
     landmarks: Tensor
@@ -415,6 +454,7 @@ class _Scene:
     joints: Tensor
     centre_b: Tensor
     extent_b: Tensor
+    centre_from_top: Tensor
     K: Tensor
     R: Tensor
     t: Tensor
@@ -542,6 +582,7 @@ def _build_scene(
     centroid = torch.stack(
         [(weight.sum(-2) * uu).sum(-1) / total, (weight.sum(-1) * vv).sum(-1) / total], -1
     )
+    clipped = torch.stack([mask[..., 0, :].any(-1), mask[..., -1, :].any(-1)], -1)
     del weight, rows_any
     # the reference's geometry at scale G, every frame
     frames = torch.arange(reference.num_frames)
@@ -604,7 +645,9 @@ def _build_scene(
     area = (radii.sum(-1)) * seg_len + math.pi / 2 * radii.square().sum(-1)
     centre_b = (area[..., None] * landmarks.mean(-2)).sum(-2) / area.sum(-1, keepdim=True)
     height_along = landmarks @ up_b  # (T, P, 2)
-    extent_b = (height_along + radii).amax((-1, -2)) - (height_along - radii).amin((-1, -2))
+    top_b = (height_along + radii).amax((-1, -2))
+    extent_b = top_b - (height_along - radii).amin((-1, -2))
+    centre_from_top = (top_b - centre_b @ up_b) / extent_b.clamp_min(1e-9)
     body_height = float(extent_b.median())
     # cameras: world up from the cameras' y axes, yaw 0 facing camera 0
     rig = video.cameras
@@ -655,6 +698,9 @@ def _build_scene(
         height,
         cam_w,
         centroid,
+        top_v,
+        bottom_v,
+        clipped,
         keypoints,
         kp_joints,
         landmarks,
@@ -662,6 +708,7 @@ def _build_scene(
         joints,
         centre_b,
         extent_b,
+        centre_from_top,
         kk,
         rr,
         tt,
@@ -752,7 +799,8 @@ def _heading_penalty(scene: _Scene, rows: Tensor, cols: Tensor, rot: Tensor) -> 
     n_obs, n_pred = v_obs.norm(dim=-1), pred.norm(dim=-1)
     cos = (v_obs * pred).sum(-1) / (n_obs * n_pred).clamp_min(1e-9)
     gate = (n_obs / st.heading_speed).clamp(max=1) * (n_pred / st.heading_speed).clamp(max=1)
-    return st.heading_weight * gate * (1 - cos) / 2
+    tolerance = math.cos(math.radians(st.heading_tolerance_deg))
+    return st.heading_weight * gate * ((tolerance - cos) / (1 + tolerance)).clamp_min(0)
 
 
 # -- the cost of a batch of problems and its Gauss-Newton terms -----------------------------
@@ -896,10 +944,12 @@ class _Batch:
         gv = gv.mul_(1 - _step((pv - v).abs_()))
         return val, gu, gv
 
-    def _points(self, canon, blend, pair_map, ends, radii, weight, cut, area, jac, acc):
+    def _points(self, canon, blend, pair_map, ends, radii, weight, cut, unseen, area, jac, acc):
         """Squared truncated map distances at sample points (interior or outline) of the
         capsules (ends and radii ``(C, P, n)`` px); adds the points' 9 + 4 normal-equation sums
-        per part into ``acc (13, C, P, n)``. Returns the cost ``(n,)``."""
+        per part into ``acc (13, C, P, n)``. Returns the cost ``(n,)``. A point outside the
+        image is not observed: its distance is ``unseen`` times the truncation ``cut``, with
+        no gradient."""
         au, av, bu, bv = (e.unsqueeze(2) for e in ends)  # (C, P, 1, n)
         r1, r2 = (r.unsqueeze(2) for r in radii)
         s_ax, s_r, alpha, beta, c_len, c_rad = canon  # (S, 1) each
@@ -913,10 +963,12 @@ class _Batch:
         w = r * torch.addcmul(c_len * length, c_rad, r) if area else c_len * length + c_rad * r
         w = w / w.sum((1, 2), keepdim=True).clamp_min(1e-12)
         val, gu, gv = self._lookup(pair_map, pu, pv, jac)
+        s = self.s
+        seen = (pu >= 0) & (pu <= s.W - 1) & (pv >= 0) & (pv <= s.H - 1)
         sw = (w * (weight * self.cam)[:, None, None]).sqrt_()
-        res = sw * val.minimum(cut)
+        res = sw * torch.where(seen, val.minimum(cut), unseen * cut)
         if jac:
-            live = sw * _step(cut - val)  # no gradient beyond the truncation
+            live = sw * _step(cut - val) * seen  # no gradient beyond the truncation
             gu, gv = gu.mul_(live), gv.mul_(live)
             quad, lin = blend
             for gg, (ga, gb) in enumerate(((gu, gu), (gu, gv), (gv, gv))):
@@ -961,6 +1013,7 @@ class _Batch:
                 radii,
                 st.outside_weight,
                 cut,
+                0.0,  # no silhouette evidence either way
                 True,
                 jac,
                 acc,
@@ -975,6 +1028,7 @@ class _Batch:
                 radii,
                 st.edge_weight,
                 cut_e,
+                0.5,  # as a hidden stretch of outline costs in stage 2's Edges cue
                 False,
                 jac,
                 acc,
@@ -1110,45 +1164,60 @@ def _levenberg_marquardt(
 
 
 # -- starts ---------------------------------------------------------------------------------
-def _targets(scene: _Scene, rows: Tensor, cols: Tensor) -> Tensor:
+def _targets(scene: _Scene, rows: Tensor, cols: Tensor, depth_factor: float = 1.0) -> Tensor:
     """Where the body's centroid should be for pairs ``rows (R,)``, ``cols (R, W)``: the
     least-squares meeting point of the rays through the silhouette centroids, with each
     (perspective) camera's depth guessed from the silhouette's pixel height against the
-    body's height. ``(R, W, 3)`` metres."""
+    body's height. Where a silhouette touches the image's top or bottom edge, that depth is
+    multiplied by ``depth_factor`` (the height seen is a lower bound of the body's) and, with
+    one edge clipped, the centroid is hung from the edge in view: the body's pixel height
+    below its top row (or above its bottom row) times the centroid's place in ``B_t``.
+    ``(R, W, 3)`` metres."""
     s = scene
     dt = s.landmarks.dtype
+    r, w = cols.shape
     kinv = torch.linalg.inv(s.K)  # (C, 3, 3)
-    cen = s.centroid[rows]  # (R, C, 2)
-    hom = torch.cat([cen, torch.ones_like(cen[..., :1])], -1)
-    ray_c = torch.einsum("cij,rcj->rci", kinv, hom)  # camera frame, z = 1
+    clip = s.clipped[rows][:, None]  # (R, 1, C, 2) top, bottom
+    clipped = clip.any(-1)  # (R, 1, C)
+    height = s.height[rows][:, None]  # (R, 1, C) px
+    if s.orthographic:
+        body_px = s.K[:, 1, 1] * s.extent_b[cols][..., None]  # (R, W, C)
+    else:
+        body_px = torch.where(clipped, height / depth_factor, height).expand(r, w, -1)
+    frac = s.centre_from_top[cols][..., None]  # (R, W, 1)
+    v = s.centroid[rows][:, None, :, 1].expand(r, w, -1)  # (R, W, C)
+    v = torch.where(clip[..., 1] & ~clip[..., 0], s.top_v[rows][:, None] + frac * body_px, v)
+    v = torch.where(
+        clip[..., 0] & ~clip[..., 1], s.bottom_v[rows][:, None] - (1 - frac) * body_px, v
+    )
+    u = s.centroid[rows][:, None, :, 0].expand(r, w, -1)
+    hom = torch.stack([u, v, torch.ones_like(u)], -1)  # (R, W, C, 3)
+    ray_c = torch.einsum("cij,rwcj->rwci", kinv, hom)  # camera frame, z = 1
     if s.orthographic:
         origin_c = ray_c.clone()
         origin_c[..., 2] = 0.0
-        origin = torch.einsum("cji,rcj->rci", s.R, origin_c - s.t)  # R^T (x - t)
+        origin = torch.einsum("cji,rwcj->rwci", s.R, origin_c - s.t)  # R^T (x - t)
         d = s.R[:, 2, :].expand_as(origin)
         lam0 = -(d * origin).sum(-1, keepdim=True)  # depth of the world origin
         mu = torch.full_like(lam0, 1e-3)
-        lam0 = lam0.unsqueeze(1).expand(-1, cols.shape[1], -1, -1)
     else:
-        origin = (-(s.R.transpose(1, 2) @ s.t[..., None])[..., 0]).expand(len(rows), -1, -1)
-        ray = torch.einsum("cji,rcj->rci", s.R, ray_c)
+        origin = (-(s.R.transpose(1, 2) @ s.t[..., None])[..., 0]).expand(r, w, -1, -1)
+        ray = torch.einsum("cji,rwcj->rwci", s.R, ray_c)
         length = ray.norm(dim=-1, keepdim=True)
         d = ray / length
         # depth: pixel height = f * body extent / z
-        z = s.K[:, 1, 1] * s.extent_b[cols][..., None] / s.height[rows][:, None]  # (R, W, C)
-        lam0 = (z * length[:, None, :, 0]).unsqueeze(-1)
+        z = s.K[:, 1, 1] * s.extent_b[cols][..., None] / body_px  # (R, W, C)
+        lam0 = z[..., None] * length
         mu = torch.full_like(length, s.settings.depth_prior)
-    w = s.cam_w[rows][..., None, None]  # (R, C, 1, 1)
+    cam = s.cam_w[rows][:, None, :, None]  # (R, 1, C, 1)
     eye = torch.eye(3, dtype=dt)
-    ddt = d[..., :, None] * d[..., None, :]  # (R, C, 3, 3)
+    ddt = d[..., :, None] * d[..., None, :]  # (R, W, C, 3, 3)
     proj = eye - ddt
-    m = (w * (proj + mu[..., None] * ddt)).sum(1)  # (R, 3, 3)
-    b_perp = (w[..., 0] * (proj @ origin[..., None])[..., 0]).sum(1)  # (R, 3)
-    along = (d * origin).sum(-1, keepdim=True)  # (R, C, 1)
-    b_par = w[:, None, :, :, 0] * mu[:, None] * d[:, None] * (along[:, None] + lam0)
-    rhs = b_perp[:, None] + b_par.sum(2)  # (R, W, 3)
-    m = m + 1e-9 * eye
-    return torch.linalg.solve(m[:, None].expand(-1, cols.shape[1], -1, -1), rhs)
+    m = (cam[..., None] * (proj + mu[..., None] * ddt)).sum(2)  # (R, W, 3, 3)
+    b_perp = (cam * (proj @ origin[..., None])[..., 0]).sum(2)  # (R, W, 3)
+    along = (d * origin).sum(-1, keepdim=True)  # (R, W, C, 1)
+    rhs = b_perp + (cam * mu * d * (along + lam0)).sum(2)
+    return torch.linalg.solve(m + 1e-9 * eye, rhs)
 
 
 def _yaw_rotations(scene: _Scene, count: int) -> Tensor:
@@ -1245,20 +1314,38 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
     Returns ``(R, W, keep, 3, 3)``, ``(R, W, keep, 3)``. Chunked."""
     r, w = cols.shape
     yaws = _yaw_rotations(scene, yaw_starts)  # (S, 3, 3)
+    # rows whose silhouette an image edge cuts get starts at several depths
+    depths = (1.0,) if scene.orthographic else scene.settings.clipped_depths
+    clipped = scene.clipped[rows].any(-1).any(-1)  # (R,)
     rows_per_chunk = max(1, scene.settings.chunk // (yaw_starts * w))
     out_r, out_p = [], []
     for lo in range(0, r, rows_per_chunk):  # chunks of rows keep memory bounded
         rr, cc = rows[lo : lo + rows_per_chunk], cols[lo : lo + rows_per_chunk]
         nr = rr.shape[0]
-        target = _targets(scene, rr, cc)  # (nr, W, 3)
-        rot0 = yaws[None, None].expand(nr, w, -1, -1, -1)
-        p0 = target[:, :, None] - (rot0 @ scene.centre_b[cc][:, :, None, :, None])[..., 0]
-        rows_n = rr[:, None, None].expand(nr, w, yaw_starts).reshape(-1)
-        cols_n = cc[:, :, None].expand(nr, w, yaw_starts).reshape(-1)
-        screen = _Batch(scene, rows_n, cols_n)
-        cost0, _, _ = screen.evaluate(rot0.reshape(-1, 3, 3), p0.reshape(-1, 3), None, False)
-        cost0 = cost0 + _heading_penalty(scene, rows_n, cols_n, rot0.reshape(-1, 3, 3))
-        best = cost0.reshape(nr, w, yaw_starts).topk(keep, dim=-1, largest=False).indices
+        costs, rots, ps = [], [], []
+        for i, depth in enumerate(depths):
+            # the first depth for every row, the others for the clipped rows only
+            sub = torch.arange(nr) if i == 0 else clipped[lo : lo + nr].nonzero().flatten()
+            rot0 = yaws[None, None].expand(nr, w, -1, -1, -1)
+            p0 = torch.zeros(nr, w, yaw_starts, 3, dtype=yaws.dtype)
+            cost0 = torch.full((nr, w, yaw_starts), math.inf, dtype=yaws.dtype)
+            if len(sub):
+                target = _targets(scene, rr[sub], cc[sub], depth)  # (n, W, 3)
+                centre = (rot0[sub] @ scene.centre_b[cc[sub]][:, :, None, :, None])[..., 0]
+                p0[sub] = target[:, :, None] - centre
+                rows_n = rr[sub][:, None, None].expand(-1, w, yaw_starts).reshape(-1)
+                cols_n = cc[sub][:, :, None].expand(-1, w, yaw_starts).reshape(-1)
+                flat_r = rot0[sub].reshape(-1, 3, 3)
+                c0, _, _ = _Batch(scene, rows_n, cols_n).evaluate(
+                    flat_r, p0[sub].reshape(-1, 3), None, False
+                )
+                c0 = c0 + _heading_penalty(scene, rows_n, cols_n, flat_r)
+                cost0[sub] = c0.reshape(-1, w, yaw_starts)
+            costs.append(cost0)
+            rots.append(rot0)
+            ps.append(p0)
+        cost0, rot0, p0 = torch.cat(costs, 2), torch.cat(rots, 2), torch.cat(ps, 2)
+        best = cost0.topk(keep, dim=-1, largest=False).indices
         out_r.append(rot0.gather(2, best[..., None, None].expand(-1, -1, -1, 3, 3)))
         out_p.append(p0.gather(2, best[..., None].expand(-1, -1, -1, 3)))
     return torch.cat(out_r), torch.cat(out_p)

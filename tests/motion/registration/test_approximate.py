@@ -209,6 +209,57 @@ def test_known_pair_is_recovered_and_is_the_minimum(reference, orthographic, dty
     assert bool((costs[1:] > 10 * costs[0]).all() & (costs[1:] > 2e-6).all()), costs
 
 
+def test_pair_partly_out_of_view_is_recovered(reference):
+    """``B_t`` 3 m from the camera, its feet below the image's bottom edge (~7 px of the
+    body's 113 out of view), silhouette only: points outside the image are not observed, so
+    the cost at the truth stays ~0 (measured 1.2e-8; 5.5e-7 when they read the image's
+    border row), and the starts hang the body from the silhouette's top at several depths
+    (the clipped height alone puts it too far): R within 5 degrees and p within 10 cm
+    (measured 3.8 degrees, 7.8 cm; before, 7.6 degrees and 11.5 cm; the same body in full
+    view, 3 degrees and 5.5 cm: one silhouette without edges pins a pair only so far)."""
+    frame = 100
+    rot = axis_angle_to_rotation_matrix(torch.tensor([[0.0, math.radians(30), 0.0]], dtype=F64))
+    p = torch.tensor([0.1, 0.95, 1.0], dtype=F64)
+    video = _render(reference, frame, rot[0], p, _rig(False))
+    sil = video.observation.silhouette[0, 0, 0]
+    assert bool(sil[-1].any()) and not bool(sil[0].any())  # the feet leave the image
+    rows, cols = torch.tensor([0]), torch.tensor([[frame]])
+    g = torch.Generator()
+    fit = fit_rigid_pairs(reference, video, rows, cols, 1.0, None, g.manual_seed(0))
+    assert float(_angle_deg(fit.rotation[0, 0], rot[0])) < 5.0
+    assert float((fit.translation[0, 0].double() - p).norm()) < 0.1
+    at_truth = pair_costs(reference, video, rows, cols, rot, p[None], 1.0, None, g.manual_seed(0))
+    assert float(at_truth) < 1e-7
+
+
+def test_heading_prior_tells_front_from_back_not_the_exact_heading(reference, walk):
+    """On the walk (towards the camera, ~1.2 m/s), the true ``T`` and the true ``T`` turned
+    40 degrees about the vertical pay nothing (within ``heading_tolerance_deg`` = 60), turned
+    180 degrees they pay ``heading_weight`` (the gate is open at walking speed); with no
+    tolerance, 40 degrees pays ``(1 - cos 40) / 2`` of it, as the prior did before."""
+    video = _video(walk)
+    rot, _ = _true_transforms(reference, walk)
+    c_true = torch.from_numpy(walk.arrays["C_true"])
+    rows = torch.arange(10, 60, 10)
+    turn = axis_angle_to_rotation_matrix(
+        torch.tensor([[0.0, math.radians(a), 0.0] for a in (0, 40, 180)], dtype=F64)
+    )
+    cands = (turn[None] @ rot[rows][:, None]).float()  # (R, 3, 3, 3)
+    for tolerance, expected in ((60.0, (0, 0, 1)), (0.0, (0, (1 - math.cos(0.698)) / 2, 1))):
+        settings = Stage1Settings(heading_tolerance_deg=tolerance)
+        scene = approximate._build_scene(
+            reference, video, 1.0, settings, torch.Generator().manual_seed(0)
+        )
+        paid = (
+            approximate._heading_penalty(
+                scene, rows[:, None].expand(-1, 3), c_true[rows][:, None].expand(-1, 3), cands
+            )
+            / settings.heading_weight
+        )
+        want = torch.tensor(expected, dtype=paid.dtype).expand_as(paid)
+        assert torch.allclose(paid, want, atol=0.03), (tolerance, paid)
+
+
 # -- (b) the 2-D joint path against OpenCV ---------------------------------------------------------
 def test_keypoint_path_matches_opencv_solvepnp(reference, walk):
     """With keypoints only (silhouette and edge weights 0) and a Cauchy scale far above the
@@ -330,7 +381,8 @@ def test_scene_built_in_chunks_of_frames_is_the_same(reference, fixture, request
         scenes.append(approximate._build_scene(reference, video, 1.0, Stage1Settings(), g))
         states.append(g.get_state())
     whole, chunked = scenes
-    for name in ("dout", "edist", "obs", "obs_w", "height", "cam_w", "centroid"):
+    names = ("dout", "edist", "obs", "obs_w", "height", "cam_w", "centroid", "top_v", "clipped")
+    for name in names:
         a, b = getattr(whole, name), getattr(chunked, name)
         assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), name
     assert torch.equal(states[0], states[1])
@@ -419,6 +471,9 @@ def test_bad_inputs_are_refused(reference, short, walk):
         (dict(edge_weight=math.inf), "edge_weight must be a finite number >= 0; got inf"),
         (dict(reference_up=(0.0, 0.0, 0.0)), "reference_up must be a non-zero 3-vector"),
         (dict(factor=1), "factor must be >= 2; got 1"),
+        (dict(clipped_depths=(1.0, 0.0)), "clipped_depths must be a non-empty tuple of fract"),
+        (dict(clipped_depths=()), "clipped_depths must be a non-empty tuple of fractions"),
+        (dict(heading_tolerance_deg=180.0), "heading_tolerance_deg must be in [0, 180); got"),
         (dict(dtype=torch.float16), "dtype must be torch.float32 or torch.float64"),
     ],
 )
