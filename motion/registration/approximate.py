@@ -33,7 +33,9 @@ Candidates (starts and refined fits) are ranked by the image cost plus a heading
 (``Stage1Settings.heading_weight``): a walker's silhouette seen from the front is nearly the
 same turned 180 degrees with the legs swapped (half a gait cycle later), and without the
 prior a whole sequence can lock onto that mirror branch; the prior asks that the person moves
-in the direction the reference's root moves, turned by the candidate's rotation.
+in the direction the reference's root moves, turned by the candidate's rotation, to within
+``Stage1Settings.heading_tolerance_deg`` (it tells front from back, not the exact heading).
+Model points outside an image cost nothing: they are not observed.
 
 Conventions (see :mod:`motion.registration.types`): ``T`` is the student's root joint transform
 in the cameras' world frame, student joints ``= R (G B_t) + p``; metres, radians, pixels with
