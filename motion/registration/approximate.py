@@ -1324,11 +1324,11 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
     for lo in range(0, r, rows_per_chunk):  # chunks of rows keep memory bounded
         rr, cc = rows[lo : lo + rows_per_chunk], cols[lo : lo + rows_per_chunk]
         nr = rr.shape[0]
-        costs, rots, ps = [], [], []
+        rot0 = yaws[None, None].expand(nr, w, -1, -1, -1)  # the same yaws at every depth
+        costs, ps = [], []
         for i, depth in enumerate(depths):
             # the first depth for every row, the others for the clipped rows only
             sub = torch.arange(nr) if i == 0 else clipped[lo : lo + nr].nonzero().flatten()
-            rot0 = yaws[None, None].expand(nr, w, -1, -1, -1)
             p0 = torch.zeros(nr, w, yaw_starts, 3, dtype=yaws.dtype)
             cost0 = torch.full((nr, w, yaw_starts), math.inf, dtype=yaws.dtype)
             if len(sub):
@@ -1344,9 +1344,9 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
                 c0 = c0 + _heading_penalty(scene, rows_n, cols_n, flat_r)
                 cost0[sub] = c0.reshape(-1, w, yaw_starts)
             costs.append(cost0)
-            rots.append(rot0)
             ps.append(p0)
-        cost0, rot0, p0 = torch.cat(costs, 2), torch.cat(rots, 2), torch.cat(ps, 2)
+        cost0, p0 = torch.cat(costs, 2), torch.cat(ps, 2)
+        rot0 = rot0.repeat(1, 1, len(depths), 1, 1)
         best = cost0.topk(keep, dim=-1, largest=False).indices
         out_r.append(rot0.gather(2, best[..., None, None].expand(-1, -1, -1, 3, 3)))
         out_p.append(p0.gather(2, best[..., None].expand(-1, -1, -1, 3)))
