@@ -174,6 +174,12 @@ class RigidConnection(ContinuousPairwise):
         rotation_schedule: multiplier of the rotation spread alone, replacing ``schedule``
             for it (e.g. ``Constant()``: a broad rotation prior that does not tighten while
             the joints' positions anneal, as the proposal's position-only connection).
+        outlier, outlier_rot_std: a heavy-tailed rotation kernel, the mixture
+            ``(1 - outlier) k(.; rot_std) + outlier k(.; outlier_rot_std)`` (both spreads
+            under the same schedule; ``outlier_rot_std > rot_std``): a joint usually stays
+            within ``rot_std`` of ``r`` but may turn much further at a small, fixed price --
+            a prior under which a few joints far off cost less than every joint a little
+            off. 0 (default): the single kernel.
     """
 
     capabilities = _SAMPLABLE | {Capability.BOUNDED, Capability.BUFFERED}
@@ -188,9 +194,22 @@ class RigidConnection(ContinuousPairwise):
         schedule=None,
         rotation: str = "bingham",
         rotation_schedule: Schedule | None = None,
+        outlier: float = 0.0,
+        outlier_rot_std: float | None = None,
     ):
         super().__init__(schedule)
         self.rotation_schedule = rotation_schedule
+        if not 0.0 <= outlier < 1.0:
+            raise ValueError(f"outlier must be a weight in [0, 1); got {outlier}")
+        if outlier > 0 and (
+            rot_std is None or outlier_rot_std is None or not outlier_rot_std > rot_std
+        ):
+            raise ValueError(
+                "an outlier kernel needs rot_std and outlier_rot_std > rot_std; got rot_std="
+                f"{rot_std}, outlier_rot_std={outlier_rot_std}"
+            )
+        self.outlier = float(outlier)
+        self.outlier_rot_std = None if outlier_rot_std is None else float(outlier_rot_std)
         if rotation not in ROTATION_KERNELS:
             raise ValueError(f"rotation must be one of {ROTATION_KERNELS}; got {rotation!r}")
         self.rotation = rotation
@@ -245,7 +264,20 @@ class RigidConnection(ContinuousPairwise):
 
     def log_potential_into(self, edges, xa, xb, num_states, out):
         (ja, qa), (jb, qb) = self._ends(edges, xa, xb)
-        return se3_kernel_table(ja, qa, jb, qb, *self._spreads(), self.rotation, out)  # [i, j]
+        s_p, s_r = self._spreads()
+        table = se3_kernel_table(ja, qa, jb, qb, s_p, s_r, self.rotation, out)  # [i, j]
+        if not self.outlier:
+            return table
+        # the position Gaussian is common to both components: log-add-exp of two tables
+        wide = se3_kernel_table(ja, qa, jb, qb, s_p, self._outlier_spread(), self.rotation)
+        keep, leave = self._outlier_log_weights()
+        return torch.logaddexp(table.add_(keep), wide.add_(leave), out=table)
+
+    def _outlier_log_weights(self) -> tuple[float, float]:
+        return math.log1p(-self.outlier), math.log(self.outlier)
+
+    def _outlier_spread(self) -> float:
+        return self.outlier_rot_std * self.multipliers(self._step.iteration)[1]
 
     def _ends(self, edges, xa, xb) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
         """What the kernel compares: the joint seen from each part and the rotations
@@ -260,11 +292,16 @@ class RigidConnection(ContinuousPairwise):
         s_p, s_r = self._spreads()
         bound = -3 * math.log(s_p) - 1.5 * _LOG_2PI  # the position Gaussian's peak
         if s_r is not None:  # and the rotation kernel's (at zero angle)
-            bound += float(
-                rotation_log_kernel_from_dot(
-                    torch.ones((), dtype=torch.float64), s_r, self.rotation
+            one = torch.ones((), dtype=torch.float64)
+            peak = float(rotation_log_kernel_from_dot(one.clone(), s_r, self.rotation))
+            if self.outlier:  # both components peak at zero angle
+                wide = float(
+                    rotation_log_kernel_from_dot(one, self._outlier_spread(), self.rotation)
                 )
-            )
+                keep, leave = self._outlier_log_weights()
+                hi, lo = sorted((peak + keep, wide + leave), reverse=True)
+                peak = hi + math.log1p(math.exp(lo - hi))
+            bound += peak
         return bound
 
     def multipliers(self, iteration: int) -> tuple[float, ...]:
@@ -281,7 +318,16 @@ class RigidConnection(ContinuousPairwise):
         xa, xb = (x_source, x_target) if forward else (x_target, x_source)
         (ja, qa), (jb, qb) = self._ends(edges, xa, xb)
         target, source = ((jb, qb), (ja, qa)) if forward else ((ja, qa), (jb, qb))
-        return se3_kernel_mixture(*target, *source, log_w_source, *self._spreads(), self.rotation)
+        s_p, s_r = self._spreads()
+        mix = se3_kernel_mixture(*target, *source, log_w_source, s_p, s_r, self.rotation)
+        if not self.outlier:
+            return mix
+        # sum_m w_m ((1 - e) k + e k_wide) = (1 - e) sum_m w_m k + e sum_m w_m k_wide
+        wide = se3_kernel_mixture(
+            *target, *source, log_w_source, s_p, self._outlier_spread(), self.rotation
+        )
+        keep, leave = self._outlier_log_weights()
+        return torch.logaddexp(mix + keep, wide + leave)
 
     def sample_target(self, x_source, edges, forward, generator):
         if Capability.SAMPLABLE not in self.capabilities:
@@ -292,6 +338,19 @@ class RigidConnection(ContinuousPairwise):
         noise = rotation_noise(
             lead, float(s_r), self.rotation, generator, x_source.dtype, x_source.device
         )
+        if self.outlier:  # each draw from the wide component with probability `outlier`
+            wide = rotation_noise(
+                lead,
+                self._outlier_spread(),
+                self.rotation,
+                generator,
+                x_source.dtype,
+                x_source.device,
+            )
+            pick = torch.rand(
+                lead, generator=generator, dtype=x_source.dtype, device=x_source.device
+            )
+            noise = torch.where((pick < self.outlier)[..., None], wide, noise)
         ep = torch.randn(
             (*lead, 3), generator=generator, dtype=x_source.dtype, device=x_source.device
         )

@@ -90,7 +90,7 @@ def fit_part_rotations(
     spec: BodySpec,
     poses: Tensor,
     reference: Tensor,
-    prior_weight: float = 1e-4,
+    prior_weight: float | Tensor = 1e-4,
     root_rotation: Tensor | None = None,
 ) -> Tensor:
     """Each part's rotation refitted to what images show of it, the rest from a reference.
@@ -105,7 +105,9 @@ def fit_part_rotations(
     give under the already fitted parent. Where the vectors pin the rotation (a pelvis, from its
     hip joints) the pull is negligible; where they leave one axis free (a limb's twist) the
     reference decides it: the smallest articulation that explains the images. Parents are
-    fitted before children, one depth level at a time.
+    fitted before children, one depth level at a time. ``prior_weight`` may also be a
+    tensor ``(..., P)``: one pull per part (e.g. weaker for a joint that differs from the
+    reference by much).
 
     Shapes: ``poses`` ``(..., P, 7)`` estimates; ``reference`` ``(..., P, 7)`` part poses
     of the reference posture (only their relative rotations are used). Returns ``(..., P,
@@ -118,6 +120,15 @@ def fit_part_rotations(
             f"{tuple(poses.shape)} and {tuple(reference.shape)}"
         )
     dtype = poses.dtype
+    if isinstance(prior_weight, Tensor):
+        if prior_weight.shape[-1:] != (spec.num_parts,):
+            raise ValueError(
+                f"prior_weight must be a float or (..., {spec.num_parts}); got "
+                f"{tuple(prior_weight.shape)}"
+            )
+        pull = prior_weight.to(dtype)[..., None, None]  # (..., P, 1, 1)
+    else:
+        pull = torch.full((spec.num_parts, 1, 1), float(prior_weight), dtype=dtype)
     est_rot = quaternion_to_rotation_matrix(poses[..., 3:7].contiguous())
     ref_rot = quaternion_to_rotation_matrix(reference[..., 3:7].to(dtype).contiguous())
     ends = spec.landmarks(poses)  # (..., P, 2, 3)
@@ -140,7 +151,7 @@ def fit_part_rotations(
                 relative = ref_rot[..., parent, :, :].transpose(-1, -2) @ ref_rot[..., p, :, :]
                 prior = fitted[..., parent, :, :] @ relative
             seen = ends[..., p, 1, :] - ends[..., p, 0, :]
-            b = seen[..., :, None] * axis[p][None, :] + prior_weight * prior
+            b = seen[..., :, None] * axis[p][None, :] + pull[..., p, :, :] * prior
             for child in (spec.parents == p).nonzero().flatten().tolist():
                 seen = poses[..., child, :3] - poses[..., p, :3]
                 b = b + seen[..., :, None] * offsets[child][None, :]

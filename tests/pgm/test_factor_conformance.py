@@ -117,7 +117,16 @@ def _steps(s, seed):
     return _rand(s + 1, seed=seed, scale=0.7)
 
 
-def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True, rot_schedule=None):
+def _rigid(
+    repeat,
+    rotation="bingham",
+    rot_std=0.3,
+    per_edge=True,
+    rel=True,
+    rot_schedule=None,
+    outlier=0.0,
+    outlier_rot_std=None,
+):
     schedule = Geometric(1.0, 0.3, 4)
     if not per_edge:
         return RigidConnection(
@@ -126,7 +135,18 @@ def _rigid(repeat, rotation="bingham", rot_std=0.3, per_edge=True, rel=True, rot
     off_a = _rand(3, 3, seed=11, scale=0.05).repeat(repeat, 1)
     off_b = _rand(3, 3, seed=12, scale=0.05).repeat(repeat, 1)
     rel_rot = qexp(_rand(3, 3, seed=13, scale=0.2)).repeat(repeat, 1) if rel else None
-    return RigidConnection(off_a, off_b, 0.05, rot_std, rel_rot, schedule, rotation, rot_schedule)
+    return RigidConnection(
+        off_a,
+        off_b,
+        0.05,
+        rot_std,
+        rel_rot,
+        schedule,
+        rotation,
+        rot_schedule,
+        outlier=outlier,
+        outlier_rot_std=outlier_rot_std,
+    )
 
 
 def _limited(repeat, rotation="bingham", per_edge=True):
@@ -235,6 +255,18 @@ CASES = [
     Case(
         "rigid-own-rotation-schedule",
         _float64(lambda r: _rigid(r, rot_std=0.8, rot_schedule=Geometric(1.0, 0.8, 3))),
+        "se3",
+        12,
+    ),
+    Case(
+        "rigid-outlier-bingham",
+        _float64(lambda r: _rigid(r, rot_std=0.15, outlier=0.2, outlier_rot_std=0.35)),
+        "se3",
+        12,
+    ),
+    Case(
+        "rigid-outlier-gaussian",
+        _float64(lambda r: _rigid(r, "gaussian", rot_std=0.15, outlier=0.2, outlier_rot_std=0.35)),
         "se3",
         12,
     ),

@@ -236,13 +236,21 @@ def test_stages23_read_uint8_frames_as_the_float_ones(student):
     assert torch.equal(runs[0].poses, runs[1].poses) and torch.equal(runs[0].C, runs[1].C)
 
 
-def test_stage3_moves_a_shifted_c_toward_the_truth(student):
+@pytest.mark.parametrize(
+    "prior, most",
+    [(dict(articulation_std=0.2, articulation_outlier=0.0), 0.6), ({}, 0.75)],
+    ids=["gaussian-prior", "heavy-tailed-prior"],
+)
+def test_stage3_moves_a_shifted_c_toward_the_truth(student, prior, most):
     """C started 8 reference frames late on 8 frames: the chain coupled to the parts moves
-    it back, monotone, to within a few frames on average."""
+    it back, monotone. Under the Gaussian articulation prior (0.2 rad) to within 0.6 of
+    the shift in 4 rounds; under the default heavy-tailed one (a 0.05 rad core) to 0.67
+    of it (measured; asserted 0.75): the tight core holds every joint near the reference
+    at the round's C, which is what C must move away from, so each round moves it less."""
     _, ref, video, c, rot, pos = student
     n = 8
     shifted = (c[:n] + 8).clamp(max=ref.num_frames - 1)
-    s = RefineSettings(particles=40, iterations=3, restarts=1, band=10, rounds=4)
+    s = RefineSettings(particles=40, iterations=3, restarts=1, band=10, rounds=4, **prior)
     res = refine(
         ref,
         video.cut(slice(0, n)),
@@ -255,7 +263,7 @@ def test_stage3_moves_a_shifted_c_toward_the_truth(student):
     )
     before = float((shifted - c[:n]).abs().float().mean())
     after = float((res.C - c[:n]).abs().float().mean())
-    assert after < 0.6 * before, (res.C.tolist(), c[:n].tolist())
+    assert after < most * before, (res.C.tolist(), c[:n].tolist())
     assert bool((res.C[1:] >= res.C[:-1]).all())
     assert res.c_changes and res.c_changes[0] > 0
 
@@ -268,4 +276,10 @@ def test_bad_inputs_are_refused(student):
         RefineSettings(particles=10, band=12)
     with pytest.raises(RegistrationError, match="overlap"):
         RefineSettings(window=4, overlap=4)
+    with pytest.raises(
+        RegistrationError, match=r"articulation_outlier must be a weight in \[0, 1\)"
+    ):
+        RefineSettings(articulation_outlier=1.0)
+    with pytest.raises(RegistrationError, match="articulation_outlier_std must exceed"):
+        RefineSettings(articulation_outlier=0.1, articulation_outlier_std=0.05)
     assert math.isfinite(float(c.float().mean()))
