@@ -84,16 +84,23 @@ def test_part_rotations_round_trip_and_twist_comes_from_the_reference(posed):
     assert float(err.max()) < 0.5, err
 
 
-def test_part_rotations_follow_a_real_swing_and_a_given_root(posed):
-    """A forearm swung by 25 degrees (its hand carried along) is followed: its far landmark
-    lands where the swung one is, to 1 mm; and a given root rotation is used as it is."""
-    spec, poses = posed
+def _swung_forearm(spec, poses):
+    """The left forearm's index and the poses with it swung by 25 degrees sideways (its
+    children left where they were)."""
     p = spec.part_names.index("forearm_l")
     axis = torch.nn.functional.normalize(spec.shapes.axis[p], dim=0)
     side = torch.linalg.cross(axis, torch.tensor([0.0, 0, 1], dtype=F64))
     swing = qexp(math.radians(25) * torch.nn.functional.normalize(side, dim=0))
     moved = poses.clone()
     moved[:, p, 3:] = qmul(poses[:, p, 3:], swing.expand(poses.shape[0], 4))
+    return p, moved
+
+
+def test_part_rotations_follow_a_real_swing_and_a_given_root(posed):
+    """A forearm swung by 25 degrees (its hand carried along) is followed: its far landmark
+    lands where the swung one is, to 1 mm; and a given root rotation is used as it is."""
+    spec, poses = posed
+    p, moved = _swung_forearm(spec, poses)
     for child in (spec.parents == p).nonzero().flatten().tolist():  # the hand moves along
         moved[:, child, :3] = spec.landmarks(moved)[:, p, 1]
     fitted = fit_part_rotations(spec, moved, poses)
@@ -115,12 +122,7 @@ def test_part_rotations_take_a_pull_per_part(posed):
     reference's joint angle (within 0.05 degrees; it was 25 off) while the other parts keep
     the scalar's fit."""
     spec, poses = posed
-    p = spec.part_names.index("forearm_l")
-    axis = torch.nn.functional.normalize(spec.shapes.axis[p], dim=0)
-    side = torch.linalg.cross(axis, torch.tensor([0.0, 0, 1], dtype=F64))
-    swing = qexp(math.radians(25) * torch.nn.functional.normalize(side, dim=0))
-    moved = poses.clone()
-    moved[:, p, 3:] = qmul(poses[:, p, 3:], swing.expand(poses.shape[0], 4))
+    p, moved = _swung_forearm(spec, poses)
     scalar = fit_part_rotations(spec, moved, poses, 1e-4)
     same = fit_part_rotations(spec, moved, poses, torch.full((3, spec.num_parts), 1e-4, dtype=F64))
     torch.testing.assert_close(same, scalar, rtol=0, atol=1e-12)
