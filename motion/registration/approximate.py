@@ -1351,8 +1351,9 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
     depths = (1.0,) if scene.orthographic else st.clipped_depths
     clipped = scene.clipped[rows].any(-1).any(-1)  # (R,)
     side_clipped = scene.side_clipped[rows].any(-1).any(-1)  # (R,)
-    variants = [
-        (depth, shift, (clipped if i else True) & (side_clipped if j else True))
+    every = torch.ones_like(clipped)
+    variants = [  # (depth, shift, the rows it applies to)
+        (depth, shift, (clipped if i else every) & (side_clipped if j else every))
         for i, depth in enumerate(depths)
         for j, shift in enumerate(st.clipped_shifts)
     ]
@@ -1364,26 +1365,22 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
         rot0 = yaws[None, None].expand(nr, w, -1, -1, -1)  # the same yaws in every variant
         costs, ps = [], []
         for depth, shift, applies in variants:
-            if applies is True:
-                sub = torch.arange(nr)
-            else:
-                sub = applies[lo : lo + nr].nonzero().flatten()
-                if not len(sub):
-                    continue
+            sub = applies[lo : lo + nr].nonzero().flatten()
+            if not len(sub):  # no row of this chunk is cut that way
+                continue
             p0 = torch.zeros(nr, w, yaw_starts, 3, dtype=yaws.dtype)
             cost0 = torch.full((nr, w, yaw_starts), math.inf, dtype=yaws.dtype)
-            if len(sub):
-                target = _targets(scene, rr[sub], cc[sub], depth, shift)  # (n, W, 3)
-                centre = (rot0[sub] @ scene.centre_b[cc[sub]][:, :, None, :, None])[..., 0]
-                p0[sub] = target[:, :, None] - centre
-                rows_n = rr[sub][:, None, None].expand(-1, w, yaw_starts).reshape(-1)
-                cols_n = cc[sub][:, :, None].expand(-1, w, yaw_starts).reshape(-1)
-                flat_r = rot0[sub].reshape(-1, 3, 3)
-                c0, _, _ = _Batch(scene, rows_n, cols_n).evaluate(
-                    flat_r, p0[sub].reshape(-1, 3), None, False
-                )
-                c0 = c0 + _heading_penalty(scene, rows_n, cols_n, flat_r)
-                cost0[sub] = c0.reshape(-1, w, yaw_starts)
+            target = _targets(scene, rr[sub], cc[sub], depth, shift)  # (n, W, 3)
+            centre = (rot0[sub] @ scene.centre_b[cc[sub]][:, :, None, :, None])[..., 0]
+            p0[sub] = target[:, :, None] - centre
+            rows_n = rr[sub][:, None, None].expand(-1, w, yaw_starts).reshape(-1)
+            cols_n = cc[sub][:, :, None].expand(-1, w, yaw_starts).reshape(-1)
+            flat_r = rot0[sub].reshape(-1, 3, 3)
+            c0, _, _ = _Batch(scene, rows_n, cols_n).evaluate(
+                flat_r, p0[sub].reshape(-1, 3), None, False
+            )
+            c0 = c0 + _heading_penalty(scene, rows_n, cols_n, flat_r)
+            cost0[sub] = c0.reshape(-1, w, yaw_starts)
             costs.append(cost0)
             ps.append(p0)
         cost0, p0 = torch.cat(costs, 2), torch.cat(ps, 2)

@@ -506,8 +506,6 @@ def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
         flat = ref.spec.landmarks(body).flatten(-3, -2)
         root, _ = rigid_fit(flat, observed.flatten(-3, -2))
     if problem.settings.twist_from_reference:
-        # MAP weight of the reference pull: landmarks of std sigma against joint angles of
-        # std articulation_std give sigma^2 / (2 articulation_std^2) (m^2)
         unit = fit_part_rotations(ref.spec, unit, body, _fit_weights(problem, unit, body), root)
     posture = fit_posture(ref.spec, ref.skeleton, ref.model, unit, ref.rotations[c])
     # fit_posture hangs the skeleton from the root part; with its rotations fixed, the
