@@ -8,6 +8,8 @@ Eq. 24 stick-figure distance):
   exactly by max-product in :mod:`pgm` (O(T' T S), never a dense T x T table).
   :func:`soft_align` is the same chain under a tempered log semiring: a posterior over C(t').
   :func:`coarse_to_fine_align` solves long sequences from a cost *function* in near-linear time.
+  :func:`tempo_align` adds a hidden, slowly changing tempo behind the steps (still exact) on
+  a band of reference frames per video frame.
 * :func:`dtw` -- the proposal's classic DTW (Eq. 26, steps (1,0), (0,1), (1,1), both ends
   fixed), kept for comparison, with its per-t' choice of the most similar reference frame.
 
@@ -29,6 +31,7 @@ from torch import Tensor
 
 from pgm import (
     BandedMonotoneFactor,
+    BandedTempoFactor,
     InfeasibleError,
     MonotoneFactor,
     TemperedSemiring,
@@ -41,6 +44,7 @@ __all__ = [
     "AlignmentError",
     "DTWResult",
     "SoftAlignment",
+    "TempoPrior",
     "band_mask",
     "chain_align",
     "coarse_to_fine_align",
@@ -49,6 +53,7 @@ __all__ = [
     "sequence_cost_fn",
     "slope_step_cost",
     "soft_align",
+    "tempo_align",
 ]
 
 CostFn = Callable[[Tensor, Tensor], Tensor]
@@ -272,6 +277,124 @@ def chain_align(
     path = result.assignment
     total = cost.gather(-1, path.unsqueeze(-1)).squeeze(-1).sum(-1)
     return Alignment(path, total)
+
+
+@dataclass(frozen=True)
+class TempoPrior:
+    """A performer's tempo for :func:`tempo_align`: C(t') follows a phase ``phi`` that
+    advances by the tempo ``v`` (reference frames per video frame) each frame, ``C =
+    round(phi)``, and ``v`` drifts as a random walk. Rounding the phase, not each step,
+    lets a tempo of 4.8 take steps of 5, 5, 5, 5, 4 at no cost.
+
+    Attributes:
+        slope: the expected tempo (e.g. the frame-rate ratio).
+        slope_weight: nats per video frame of ``((v - slope) / slope)^2`` (the slope prior
+            of :func:`slope_step_cost`, on the tempo).
+        change_std: the random walk's standard deviation per video frame, relative to
+            ``slope``.
+        subdivisions: the phase's resolution, ``1 / subdivisions`` reference frame.
+    """
+
+    slope: float
+    slope_weight: float
+    change_std: float
+    subdivisions: int = 4
+
+    def __post_init__(self):
+        for name in ("slope", "change_std"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise AlignmentError(f"{name} must be a finite positive number; got {value}")
+        if not (self.slope_weight >= 0 and math.isfinite(self.slope_weight)):
+            raise AlignmentError(
+                f"slope_weight must be a finite number >= 0; got {self.slope_weight}"
+            )
+        m = self.subdivisions
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise AlignmentError(f"subdivisions must be an int >= 1; got {m!r}")
+
+    def factor(self, max_step: int, offsets: Tensor) -> BandedTempoFactor:
+        """The chain on the phase grid: positions ``offsets * m + [0, (W - 1) m]``, steps
+        of ``0 .. S m`` grid units, one level per step (the tempo), each emitting its own
+        step only."""
+        m = self.subdivisions
+        tempo = torch.arange(max_step * m + 1, dtype=torch.float64) / m
+        level_cost = self.slope_weight * ((tempo - self.slope) / self.slope) ** 2
+        emission = torch.full((len(tempo), len(tempo)), -math.inf, dtype=torch.float64)
+        emission.diagonal().copy_(-level_cost)
+        change = (tempo[:, None] - tempo[None, :]) / self.slope
+        change = -(change**2) / (2 * self.change_std**2)
+        dtype = torch.get_default_dtype()
+        return BandedTempoFactor(max_step * m, offsets * m, emission.to(dtype), change.to(dtype))
+
+
+def _phase_costs(cost: Tensor, m: int) -> Tensor:
+    """``(T', W)`` costs at reference frames -> ``(T', (W - 1) m + 1)`` at the phase grid:
+    each phase costs what its rounded frame does (what C will be)."""
+    phase = torch.arange((cost.shape[1] - 1) * m + 1)
+    return cost[:, torch.div(phase + m // 2, m, rounding_mode="floor")]
+
+
+def tempo_align(
+    cost: Tensor, offsets: Tensor, max_step: int, prior: TempoPrior | None = None
+) -> Alignment:
+    """Exact monotone alignment on a band under a performer's slowly changing tempo.
+
+    Minimises ``sum_t' d(t', C(t'))`` plus the :class:`TempoPrior`'s costs (the slope prior
+    on the tempo, each change of tempo) jointly over monotone paths (each ``C(t')`` in its
+    window ``offsets[t'] + [0, W)``, steps in ``[0, S]``) and tempo sequences: a first-order
+    chain on (phase, tempo) states on a grid of ``1 / m`` reference frame, solved by
+    max-product in :mod:`pgm` (:class:`pgm.BandedTempoFactor`; O(T' W S m^3)), each phase
+    costing what its rounded frame does. A first-order chain chooses each step on its own,
+    so where the costs hardly differ (the ends of a video, a body half out of view) the path
+    stalls or races within the slope prior; the tempo carries the rate the rest of the
+    video shows through them. The first frame's tempo is free.
+
+    Args:
+        cost: ``(T', W)`` costs of each video frame's window; ``+inf`` forbids a pair.
+        offsets: ``(T',)`` non-decreasing long, each window's first reference frame.
+        max_step: S >= 1.
+        prior: :class:`TempoPrior`; ``None``: any step in ``[0, S]`` alike (the banded
+            first-order chain).
+
+    Returns:
+        :class:`Alignment` with ``path`` (1, T') absolute reference frames (the phase
+        rounded) and ``cost`` (1,) the sum of ``cost`` along it (excluding the prior).
+
+    Raises:
+        AlignmentError: bad shapes, NaN, S < 1, or no monotone path fits the windows.
+    """
+    _check_step(max_step)
+    if max_step is None:
+        raise AlignmentError("tempo_align needs a finite max_step")
+    if isinstance(cost, Tensor) and cost.dim() != 2:
+        raise AlignmentError(f"cost must be one (T', W) table; got shape {tuple(cost.shape)}")
+    cost = _check_cost(cost)[0]
+    n, w = cost.shape
+    offsets = torch.as_tensor(offsets)
+    if offsets.shape != (n,) or offsets.dtype.is_floating_point or (offsets.diff() < 0).any():
+        raise AlignmentError(
+            f"offsets must be ({n},) non-decreasing integers; got {tuple(offsets.shape)} "
+            f"{offsets.dtype}"
+        )
+    if prior is None:  # one level emitting every step alike: the plain banded chain
+        m, levels = 1, 1
+        s1 = max_step + 1
+        factor = BandedTempoFactor(max_step, offsets, torch.zeros(1, s1), torch.zeros(1, 1))
+    else:
+        m, factor = prior.subdivisions, prior.factor(max_step, offsets.long())
+        levels = factor.num_levels
+    unary = -_phase_costs(cost, m).repeat_interleave(levels, dim=-1).unsqueeze(0)
+    try:
+        result = chain_map(unary, factor)
+    except InfeasibleError as err:
+        raise AlignmentError(
+            f"no monotone path with max_step={max_step} fits the windows (T'={n}, W={w})"
+        ) from err
+    phase = result.assignment[0] // levels
+    index = torch.div(phase + m // 2, m, rounding_mode="floor").clamp(max=w - 1)
+    total = cost.gather(-1, index[:, None]).sum()
+    return Alignment((offsets + index).unsqueeze(0), total.reshape(1))
 
 
 def soft_align(

@@ -19,6 +19,7 @@ from pgm.continuous import (
 from pgm.factors import (
     AnnealingStep,
     BandedMonotoneFactor,
+    BandedTempoFactor,
     Capability,
     FactorWrapper,
     MissingCapabilityError,
@@ -46,6 +47,7 @@ __all__ = [
     "SE3",
     "AnnealingStep",
     "BandedMonotoneFactor",
+    "BandedTempoFactor",
     "Capability",
     "Constant",
     "ContinuousPairwise",

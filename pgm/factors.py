@@ -835,3 +835,149 @@ class BandedMonotoneFactor(PairwiseFactor):
         vals = h.gather(-1, cand.clamp(0, w - 1)) + self.step_log_potential.to(h.dtype)
         vals = torch.where(valid, vals, torch.full_like(vals, -math.inf))
         return cand.gather(-1, vals.argmax(-1, keepdim=True)).squeeze(-1)
+
+
+class BandedTempoFactor(PairwiseFactor):
+    """:class:`BandedMonotoneFactor` with a hidden tempo: a monotone chain whose steps are
+    emitted by a level that itself changes slowly (an HMM over the step), as a first-order
+    chain on lifted states.
+
+    Node ``n`` has ``K = W L`` states, pairs ``(i, l)`` at index ``i L + l``: absolute
+    position ``offsets[n] + i`` and tempo level ``l``. Edge ``n`` joins ``(i, l)`` to
+    ``(j, l')`` with the step ``s = offsets[n + 1] + j - offsets[n] - i``, allowed in
+    ``[0, S]``, and log-potential ``change_log_potential[l', l] +
+    emission_log_potential[l', s]``: the new level given the old, and the step given the new
+    level (e.g. a fractional tempo rounded to the steps either side, a slope prior folded
+    in). With ``L = S + 1`` levels that emit their own step only, this is a second-order
+    chain on positions (a prior on the change of step). The chain's MAP is exact dynamic
+    programming; structured messages cost O(W L (L + R)) per edge, R the most steps a level
+    allows (one or two for a rounded tempo), the dense table
+    (``K x K``) exists for tests and small chains only. States past ``W L`` (a node padded
+    to a particle count) are forbidden.
+
+    Edges must be consecutive pairs ``(n, n + 1)``, addressed by ``n``, as for
+    :class:`BandedMonotoneFactor`.
+
+    Args:
+        max_step: S >= 1.
+        offsets: ``(N,)`` long, first absolute position of each node's window.
+        emission_log_potential: ``(L, S + 1)`` log-potential of each step given a level.
+        change_log_potential: ``(L, L)`` log-potential of level ``l'`` after level ``l``,
+            indexed ``[l', l]``.
+    """
+
+    capabilities = frozenset({Capability.STRUCTURED})
+
+    def __init__(
+        self,
+        max_step: int,
+        offsets: Tensor,
+        emission_log_potential: Tensor,
+        change_log_potential: Tensor,
+    ):
+        if isinstance(max_step, bool) or not isinstance(max_step, int) or max_step < 1:
+            raise ValueError(f"max_step (S) must be an int >= 1, got {max_step!r}")
+        if offsets.dim() != 1 or offsets.dtype.is_floating_point:
+            raise ValueError(f"offsets must be a 1-D integer tensor; got {tuple(offsets.shape)}")
+        levels = emission_log_potential.shape[0] if emission_log_potential.dim() == 2 else 0
+        if levels < 1 or emission_log_potential.shape != (levels, max_step + 1):
+            raise ValueError(
+                f"emission_log_potential must have shape (L, {max_step + 1}) for "
+                f"max_step={max_step}; got {tuple(emission_log_potential.shape)}"
+            )
+        if change_log_potential.shape != (levels, levels):
+            raise ValueError(
+                f"change_log_potential must have shape ({levels}, {levels}) for L={levels} "
+                f"levels; got {tuple(change_log_potential.shape)}"
+            )
+        _check_finite_or_neg_inf("emission_log_potential", emission_log_potential)
+        _check_finite_or_neg_inf("change_log_potential", change_log_potential)
+        self.max_step = max_step
+        self.offsets = offsets.long()
+        self.num_edges = offsets.shape[0] - 1
+        self.num_levels = levels
+        self.emission_log_potential = emission_log_potential
+        self.change_log_potential = change_log_potential
+        # each level's allowed steps, padded to the most any level has (a rounded tempo
+        # emits one or two): messages then cost O(W L R), not O(W L S)
+        allowed = torch.isfinite(emission_log_potential)
+        rank = max(1, int(allowed.sum(1).max()))
+        order = torch.sort(allowed.long(), dim=1, descending=True, stable=True).indices
+        self._steps = order[:, :rank]  # (L, R)
+        self._step_ok = allowed.gather(1, self._steps)  # (L, R)
+
+    def width(self, num_states: int) -> int:
+        """W, the positions per node, of a node with ``num_states`` states."""
+        return num_states // self.num_levels
+
+    def _lifted(self, num_states: int) -> tuple[Tensor, Tensor]:
+        """Each state's position index and level ``(K,)``, ``-1`` on padding."""
+        L, w = self.num_levels, self.width(num_states)
+        pos = torch.full((num_states,), -1, dtype=torch.long)
+        level = torch.full((num_states,), -1, dtype=torch.long)
+        pos[: w * L] = torch.arange(w).repeat_interleave(L)
+        level[: w * L] = torch.arange(L).repeat(w)
+        return pos, level
+
+    def _shift(self, edges: EdgeIndex) -> Tensor:
+        n = torch.arange(self.num_edges)[edges]
+        return self.offsets[n + 1] - self.offsets[n]  # (E,)
+
+    def _pair(self, step: Tensor, new: Tensor, old: Tensor, real: Tensor) -> Tensor:
+        """Log-potential of steps with new and old levels (broadcastable; ``real`` marks
+        pairs of real states), ``-inf`` where the step is outside ``[0, S]``."""
+        ok = real & (step >= 0) & (step <= self.max_step)
+        new, old = new.clamp(min=0), old.clamp(min=0)
+        emit = self.emission_log_potential[new, step.clamp(0, self.max_step)]
+        lp = self.change_log_potential[new, old] + emit
+        return torch.where(ok, lp, -math.inf)
+
+    def log_potential(self, edges, xa, xb, num_states):
+        d = self._shift(edges)[:, None, None]
+        pos, level = self._lifted(num_states)
+        step = d + pos[None, None, :] - pos[None, :, None]  # (E, K_a, K_b)
+        real = (level[:, None] >= 0) & (level[None, :] >= 0)
+        return self._pair(step, level[None, None, :], level[None, :, None], real).unsqueeze(0)
+
+    def _positions(self, grid: Tensor, src: Tensor) -> tuple[Tensor, Tensor]:
+        """``grid`` ``(B, E, W, L)`` read at positions ``src`` ``(E, W, L, R)`` of the same
+        level -> ``(B, E, W, L, R)`` and the mask of positions inside the window."""
+        b, e, w, L = grid.shape
+        r = src.shape[-1]
+        valid = (src >= 0) & (src < w)
+        flat = src.clamp(0, w - 1) * L + torch.arange(L)[:, None]  # index into (W L)
+        vals = grid.reshape(b, e, w * L).gather(2, flat.reshape(1, e, -1).expand(b, e, -1))
+        return vals.reshape(b, e, w, L, r), valid
+
+    def message(self, h, edges, forward, semiring, xa=None, xb=None):
+        b, e, k = h.shape
+        L, w = self.num_levels, self.width(k)
+        grid = h[..., : w * L].reshape(b, e, w, L)
+        d = self._shift(edges)[:, None, None, None]  # (E, 1, 1, 1)
+        pos, steps = torch.arange(w)[None, :, None, None], self._steps[None, None]  # (.., L, R)
+        change = semiring.from_log(self.change_log_potential.to(h.dtype))  # [l', l]
+        emit = self.emission_log_potential.gather(1, self._steps)  # (L, R)
+        emit = semiring.from_log(emit.to(h.dtype))
+        zero = torch.full((), semiring.zero, dtype=h.dtype)
+        if forward:
+            # each source position's levels moved to the new level, then the step emitted
+            moved = semiring.sum(semiring.mul(grid[..., None, :], change), dim=-1)  # [i, l']
+            vals, valid = self._positions(moved, pos + d - steps)  # [j, l', r]: i = j + d - s
+            ok = (valid & self._step_ok)[None]
+            out = semiring.sum(torch.where(ok, semiring.mul(vals, emit), zero), dim=-1)
+        else:
+            vals, valid = self._positions(grid, pos - d + steps)  # [i, l', r]: j = i - d + s
+            ok = (valid & self._step_ok)[None]
+            emitted = semiring.sum(torch.where(ok, semiring.mul(vals, emit), zero), dim=-1)
+            out = semiring.sum(semiring.mul(emitted[..., :, None], change), dim=-2)  # [i, l]
+        out = out.reshape(b, e, w * L)
+        return torch.nn.functional.pad(out, (0, k - w * L), value=semiring.zero)
+
+    def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
+        d = self._shift(edges)[None, :, None]
+        pos, level = (x[None, None, :] for x in self._lifted(num_states))  # the source's
+        t_pos, t_level = (x[target_state].unsqueeze(-1) for x in self._lifted(num_states))
+        real = (level >= 0) & (t_level >= 0)
+        if forward:  # source (i, l) -> target (j, l')
+            return self._pair(d + t_pos - pos, t_level, level, real)
+        return self._pair(d + pos - t_pos, level, t_level, real)  # target (i, l) <- (j, l')

@@ -10,6 +10,7 @@ import torch
 
 from motion.alignment import (
     AlignmentError,
+    TempoPrior,
     band_mask,
     chain_align,
     coarse_to_fine_align,
@@ -18,6 +19,7 @@ from motion.alignment import (
     sequence_cost_fn,
     slope_step_cost,
     soft_align,
+    tempo_align,
 )
 
 
@@ -124,6 +126,91 @@ def test_chain_align_with_step_cost_matches_brute_force():
 
     best = min(_monotone_paths(n, k, s), key=energy)
     assert tuple(result.path[0].tolist()) == best
+
+
+@pytest.mark.parametrize(("seed", "m"), [(0, 1), (1, 1), (2, 2), (3, 3)])
+def test_tempo_align_is_the_best_phase_path(seed, m):
+    """Every monotone phase path on the grid of 1/m frame through random windows, scored by
+    hand (each phase costing its rounded frame, the slope prior on each step's tempo, the
+    change of tempo): tempo_align's C is the best one's phase rounded (its cost excludes
+    the prior)."""
+    g = torch.Generator().manual_seed(seed)
+    n, w, s = 4, 3, 2
+    offsets = torch.cummax(torch.randint(0, 3, (n,), generator=g).cumsum(0) - 1, 0).values
+    offsets = (offsets - offsets[0]).clamp(min=0)
+    cost = torch.rand(n, w, generator=g, dtype=torch.float64)
+    cost[2, 1] = math.inf  # a forbidden frame
+    prior = TempoPrior(1.3, 0.4, 0.3, subdivisions=m)
+
+    def at(t, phase):  # the cost at a phase (grid units): its rounded frame's
+        return cost[t, (phase + m // 2) // m - int(offsets[t])].item()
+
+    def energy(path):
+        tempo = [(b - a) / m for a, b in itertools.pairwise(path)]
+        return (
+            sum(at(t, p) for t, p in enumerate(path))
+            + sum(prior.slope_weight * ((v - 1.3) / 1.3) ** 2 for v in tempo)
+            + sum(((b - a) / 1.3) ** 2 / (2 * 0.3**2) for a, b in itertools.pairwise(tempo))
+        )
+
+    grids = [range(int(o) * m, (int(o) + w - 1) * m + 1) for o in offsets]
+    paths = [
+        p
+        for p in itertools.product(*grids)
+        if all(0 <= b - a <= s * m for a, b in itertools.pairwise(p))
+    ]
+    best = min(paths, key=energy)
+    result = tempo_align(cost, offsets, s, prior)
+    expected = [(p + m // 2) // m for p in best]
+    assert result.path[0].tolist() == expected
+    on_path = sum(cost[t, c - offsets[t]].item() for t, c in enumerate(expected))
+    assert result.cost.item() == pytest.approx(on_path, abs=1e-12)
+
+
+def test_tempo_align_without_a_prior_is_the_chain_on_the_band():
+    """No prior: the first-order chain, i.e. chain_align with the band's mask."""
+    g = torch.Generator().manual_seed(4)
+    n, k, w, s = 30, 60, 9, 3
+    offsets = (torch.arange(n) * 1.7).long().clamp(max=k - w)
+    cost = torch.rand(n, w, generator=g, dtype=torch.float64)
+    full = torch.full((n, k), math.inf, dtype=torch.float64)
+    full.scatter_(1, offsets[:, None] + torch.arange(w), cost)
+    chained = chain_align(full, s)
+    banded = tempo_align(cost, offsets, s)
+    assert torch.equal(banded.path, chained.path)
+    torch.testing.assert_close(banded.cost, chained.cost)
+
+
+def test_tempo_prior_holds_the_tempo_where_the_evidence_is_flat():
+    """A warp at 2.5 frames per step (steps of 2 and 3 interleaved) whose first and last 8
+    rows say nothing: the first-order chain under the slope prior (around 2) drifts there;
+    the tempo carries the observed rate through them, and follows the interleaved steps
+    exactly (rounding the phase costs them nothing)."""
+    n, k, s = 40, 140, 6
+    true = (10 + 2.5 * torch.arange(n)).floor().long()
+    cost = (torch.arange(k)[None, :] - true[:, None]).abs().double().clamp(max=5) / 5
+    cost[:8] = 0.0
+    cost[-8:] = 0.0
+    offsets = torch.zeros(n, dtype=torch.long)
+    first = chain_align(cost, s, step_cost=slope_step_cost(s, 2.0, 1.0).double()).path[0]
+    second = tempo_align(cost, offsets, s, TempoPrior(2.0, 1.0, 0.1)).path[0]
+    assert (first - true).abs()[:8].float().mean() > 2  # the chain's ends drift
+    assert torch.equal(second, true)
+
+
+def test_tempo_align_input_errors():
+    cost = torch.zeros(4, 3)
+    offsets = torch.arange(4)
+    with pytest.raises(AlignmentError, match=r"one \(T', W\) table"):
+        tempo_align(torch.zeros(1, 4, 3), offsets, 2)
+    with pytest.raises(AlignmentError, match="non-decreasing"):
+        tempo_align(cost, torch.tensor([0, 2, 1, 3]), 2)
+    with pytest.raises(AlignmentError, match="subdivisions must be an int >= 1"):
+        TempoPrior(1.0, 1.0, 0.1, subdivisions=0)
+    with pytest.raises(AlignmentError, match="no monotone path"):
+        tempo_align(cost, torch.tensor([0, 0, 9, 9]), 2)
+    with pytest.raises(AlignmentError, match="change_std must be"):
+        TempoPrior(1.0, 1.0, 0.0)
 
 
 def test_soft_alignment_matches_brute_force_posterior():

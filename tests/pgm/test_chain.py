@@ -1,5 +1,6 @@
 """Chains: long-chain numerics, structured monotone kernels, fused Viterbi."""
 
+import itertools
 import math
 
 import pytest
@@ -7,6 +8,7 @@ import torch
 
 from pgm import (
     BandedMonotoneFactor,
+    BandedTempoFactor,
     CountingSemiring,
     FactorGraph,
     GraphError,
@@ -181,6 +183,45 @@ def test_banded_factor_with_step_potentials_equals_dense_table_and_monotone_fact
     torch.testing.assert_close(banded.log_partition, plain.log_partition)
     with pytest.raises(ValueError, match=r"step_log_potential must have shape \(4,\)"):
         BandedMonotoneFactor(s, offsets, torch.zeros(3))
+
+
+def test_tempo_factor_with_one_level_per_step_is_a_second_order_chain():
+    """L = S + 1 levels, level l emitting step l only: the lifted chain's log-partition and
+    MAP are those of the second-order chain on positions (steps' and changes' potentials),
+    summed / maximised over every monotone position path by brute force -- the first
+    node's level is free, so the brute force sums (or maximises) over it too."""
+    torch.manual_seed(8)
+    n, w, s = 5, 3, 2
+    offsets = torch.tensor([0, 1, 1, 3, 4])
+    step_lp = torch.randn(s + 1, dtype=torch.float64)
+    change = torch.randn(s + 1, s + 1, dtype=torch.float64)
+    emission = torch.full((s + 1, s + 1), -math.inf, dtype=torch.float64)
+    emission.diagonal().copy_(step_lp)
+    factor = BandedTempoFactor(s, offsets, emission, change)
+    unary = torch.randn(n, w, dtype=torch.float64)
+    lifted = unary.repeat_interleave(s + 1, -1)[None]
+    scores, paths = [], []
+    for idx in itertools.product(range(w), repeat=n):
+        pos = [int(offsets[t]) + i for t, i in enumerate(idx)]
+        steps = [b - a for a, b in itertools.pairwise(pos)]
+        if not all(0 <= x <= s for x in steps):
+            continue
+        base = sum(unary[t, i].item() for t, i in enumerate(idx))
+        base += sum(step_lp[x].item() for x in steps)
+        base += sum(change[b, a].item() for a, b in itertools.pairwise(steps))
+        free = torch.logsumexp(change[steps[0]], 0).item()  # the first node's level
+        scores.append((base + free, base + change[steps[0]].max().item()))
+        paths.append(idx)
+    total = torch.logsumexp(torch.tensor([a for a, _ in scores], dtype=torch.float64), 0)
+    torch.testing.assert_close(
+        chain_inference(lifted, factor, LogSemiring()).log_partition[0], total
+    )
+    best = max(range(len(paths)), key=lambda i: scores[i][1])
+    result = chain_map(lifted, factor)
+    assert (result.assignment[0] // (s + 1)).tolist() == list(paths[best])
+    assert result.log_partition[0].item() == pytest.approx(scores[best][1], abs=1e-10)
+    padded = factor.log_potential(slice(0, 1), None, None, w * (s + 1) + 2)
+    assert padded[..., -2:, :].isneginf().all() and padded[..., -2:].isneginf().all()
 
 
 def test_infeasible_chain_raises():

@@ -36,6 +36,7 @@ from pgm import (
     SE3,
     AnnealingStep,
     BandedMonotoneFactor,
+    BandedTempoFactor,
     Capability,
     CountingSemiring,
     Discrete,
@@ -115,6 +116,13 @@ def _table_with_holes(e, k, seed):
 
 def _steps(s, seed):
     return _rand(s + 1, seed=seed, scale=0.7)
+
+
+def _emissions():
+    """Two tempo levels, each emitting two of the three steps (the rest forbidden)."""
+    table = _rand(2, 3, seed=9, scale=0.5)
+    table[0, 2] = table[1, 0] = -math.inf
+    return table
 
 
 def _rigid(
@@ -230,6 +238,20 @@ CASES = [
         lambda r: BandedMonotoneFactor(2, _tile_offsets(r), _steps(2, 7)),
         "discrete",
         6,
+    ),
+    Case(
+        "banded-tempo",
+        lambda r: BandedTempoFactor(
+            2, _tile_offsets(r), _rand(3, 3, seed=10, scale=0.7), _rand(3, 3, seed=11, scale=0.7)
+        ),
+        "discrete",
+        6,  # W = 2 positions x L = 3 tempo levels
+    ),
+    Case(
+        "banded-tempo-forbidden",
+        lambda r: BandedTempoFactor(2, _tile_offsets(r), _emissions(), _rand(2, 2, seed=12)),
+        "discrete",
+        8,  # W = 4 positions x L = 2 levels
     ),
     Case(
         "linear-gaussian",
