@@ -384,7 +384,9 @@ def tempo_align(
     else:
         m, factor = prior.subdivisions, prior.factor(max_step, offsets.long())
         levels = factor.num_levels
-    unary = -_phase_costs(cost, m).repeat_interleave(levels, dim=-1).unsqueeze(0)
+    # the default dtype: T' x W m x L lifted states (7,500 x 193 x 49 for a 5-minute video)
+    phase_cost = _phase_costs(cost.to(torch.get_default_dtype()), m)
+    unary = -phase_cost.repeat_interleave(levels, dim=-1).unsqueeze(0)
     try:
         result = chain_map(unary, factor)
     except InfeasibleError as err:
