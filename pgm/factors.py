@@ -771,8 +771,8 @@ class BandedMonotoneFactor(PairwiseFactor):
                 alpha[:, t] -= c[:, None]
                 log_scale += c
         score = alpha[:, -1].max(-1) + log_scale
-        states = np.empty((b, n), dtype=np.int64)
-        for bi in range(b):
+        states = np.zeros((b, n), dtype=np.int64)
+        for bi in np.isfinite(score).nonzero()[0]:  # an infeasible item has no path to trace
             j = int(alpha[bi, -1].argmax())
             states[bi, -1] = j
             for t in range(n - 2, -1, -1):
@@ -975,8 +975,9 @@ class BandedTempoFactor(PairwiseFactor):
 
     def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
         d = self._shift(edges)[None, :, None]
-        pos, level = (x[None, None, :] for x in self._lifted(num_states))  # the source's
-        t_pos, t_level = (x[target_state].unsqueeze(-1) for x in self._lifted(num_states))
+        lifted = self._lifted(num_states)
+        pos, level = (x[None, None, :] for x in lifted)  # the source's
+        t_pos, t_level = (x[target_state].unsqueeze(-1) for x in lifted)
         real = (level >= 0) & (t_level >= 0)
         if forward:  # source (i, l) -> target (j, l')
             return self._pair(d + t_pos - pos, t_level, level, real)

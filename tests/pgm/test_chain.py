@@ -232,6 +232,14 @@ def test_infeasible_chain_raises():
         chain_map(unary, MonotoneFactor(2))
 
 
+def test_infeasible_band_raises_on_the_fused_and_generic_paths():
+    """Windows too far apart for the step bound (a shift of 9 with W = 3, S = 2)."""
+    factor = BandedMonotoneFactor(2, torch.tensor([0, 0, 9, 9]))
+    for fused in (True, False):
+        with pytest.raises(InfeasibleError, match="no configuration"):
+            chain_map(torch.zeros(1, 4, 3), factor, use_fused=fused)
+
+
 def test_chain_input_errors():
     with pytest.raises(GraphError, match=r"shape \(B, N, K\) or \(N, K\); got \(4,\)"):
         chain_map(torch.zeros(4), MonotoneFactor(1))
