@@ -377,10 +377,8 @@ def tempo_align(
             f"offsets must be ({n},) non-decreasing integers; got {tuple(offsets.shape)} "
             f"{offsets.dtype}"
         )
-    if prior is None:  # one level emitting every step alike: the plain banded chain
-        m, levels = 1, 1
-        s1 = max_step + 1
-        factor = BandedTempoFactor(max_step, offsets, torch.zeros(1, s1), torch.zeros(1, 1))
+    if prior is None:  # no tempo: the plain banded chain
+        m, levels, factor = 1, 1, BandedMonotoneFactor(max_step, offsets.long())
     else:
         m, factor = prior.subdivisions, prior.factor(max_step, offsets.long())
         levels = factor.num_levels
