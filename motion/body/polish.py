@@ -97,9 +97,9 @@ def _soft_render(
     front = cover.gather(-2, order)
     ahead = torch.cat([torch.ones_like(front[..., :1, :]), 1 - front[..., :-1, :]], dim=-2)
     through = torch.cumprod(ahead, dim=-2)  # what the parts in front let through
-    weights = front * through
+    weights = torch.zeros_like(front).scatter(-2, order, front * through)  # parts' order
     weights = weights / weights.sum(-2, keepdim=True).clamp_min(1e-12)
-    colour = torch.einsum("tcpn,tcpnk->tckn", weights, colours.to(poses)[order])
+    colour = torch.einsum("tcpn,pk->tckn", weights, colours.to(poses))
     background = 0.5
     image = sil.unsqueeze(-2) * colour + (1 - sil.unsqueeze(-2)) * background
     return sil.reshape(shape), image.reshape(*shape[:-2], 3, h, w)
@@ -143,11 +143,11 @@ def _window(
     the capsules at ``poses`` ``(T, P, 7)``, in any frame and camera, ``margin`` around."""
     H, W = silhouette.shape[-2:]
     parts = project_parts(rig, spec.landmarks(poses), spec.shapes.radii.to(poses))
-    reach = parts.radii.detach().unsqueeze(-1)  # (T, C, P, 2, 1)
-    low = (parts.ends.detach() - reach).flatten(0, -2).amin(0)  # (u, v)
-    high = (parts.ends.detach() + reach).flatten(0, -2).amax(0)
-    rows = silhouette.flatten(0, -3).amax(0).amax(-1).nonzero()
-    cols = silhouette.flatten(0, -3).amax(0).amax(-2).nonzero()
+    reach = parts.radii.unsqueeze(-1)  # (T, C, P, 2, 1)
+    low = (parts.ends - reach).flatten(0, -2).amin(0)  # (u, v)
+    high = (parts.ends + reach).flatten(0, -2).amax(0)
+    seen = silhouette.flatten(0, -3).amax(0)  # (H, W): observed in any frame and camera
+    rows, cols = seen.amax(-1).nonzero(), seen.amax(-2).nonzero()
     if len(rows):
         low = torch.minimum(low, torch.stack([cols.min(), rows.min()]).to(low))
         high = torch.maximum(high, torch.stack([cols.max(), rows.max()]).to(high))
