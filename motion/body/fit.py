@@ -169,17 +169,34 @@ def _nearest_rotation(b: Tensor, eye: Tensor) -> Tensor:
     return u @ fix @ vh
 
 
-def rigid_fit(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
-    """The rotation and translation taking points ``source`` onto ``target`` in least
-    squares (Kabsch): ``(..., N, 3)`` each -> ``R (..., 3, 3)``, ``t (..., 3)`` with
-    ``target ~ R source + t``."""
+def rigid_fit(
+    source: Tensor, target: Tensor, weights: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """The rotation and translation taking points ``source`` onto ``target`` in (weighted)
+    least squares (Kabsch): ``(..., N, 3)`` each, ``weights`` ``(..., N)`` >= 0 (``None``:
+    all 1; broadcast against the points' batch) -> ``R (..., 3, 3)``, ``t (..., 3)`` with
+    ``target ~ R source + t``, minimising ``sum_i w_i ||R s_i + t - x_i||^2``."""
     if source.shape != target.shape or source.shape[-1] != 3:
         raise ValueError(
             f"source and target must have the same shape (..., N, 3); got "
             f"{tuple(source.shape)} and {tuple(target.shape)}"
         )
-    mu_s, mu_t = source.mean(-2), target.mean(-2)
-    b = (target - mu_t[..., None, :]).transpose(-1, -2) @ (source - mu_s[..., None, :])
+    if weights is None:
+        weights = torch.ones(source.shape[-2], dtype=source.dtype, device=source.device)
+    weights = weights.to(source)[..., None]  # (..., N, 1)
+    if weights.shape[-2] != source.shape[-2] or bool((weights < 0).any()):
+        raise ValueError(
+            f"weights must be >= 0 with one per point ({source.shape[-2]}); got shape "
+            f"{tuple(weights.shape[:-1])}"
+        )
+    total = weights.sum(-2)  # (..., 1)
+    if bool((total <= 0).any()):
+        raise ValueError("every point set needs a positive total weight")
+    mu_s = (weights * source).sum(-2) / total
+    mu_t = (weights * target).sum(-2) / total
+    b = (weights * (target - mu_t[..., None, :])).transpose(-1, -2) @ (
+        source - mu_s[..., None, :]
+    )
     eye = torch.eye(3, dtype=source.dtype, device=source.device)
     r = _nearest_rotation(b, eye)
     return r, mu_t - (r @ mu_s[..., :, None]).squeeze(-1)

@@ -62,6 +62,43 @@ def test_rigid_fit_recovers_a_known_transform_and_is_least_squares():
         rigid_fit(src, noisy[:, :5])
 
 
+def test_weighted_rigid_fit_is_the_fit_of_repeated_points():
+    """Integer weights are the unweighted fit of each point repeated that many times (an
+    independent answer: the plain Kabsch on the expanded set); a zero weight removes a
+    point, however far off it lies; bad weights are refused."""
+    g = torch.Generator().manual_seed(1)
+    src = torch.randn(3, 12, 3, generator=g, dtype=F64)
+    dst = torch.randn(3, 12, 3, generator=g, dtype=F64)
+    counts = torch.randint(0, 4, (3, 12), generator=g)
+    counts[:, 0] = 1  # every set keeps a point
+    r_w, t_w = rigid_fit(src, dst, counts.to(F64))
+    for i in range(3):
+        rep = counts[i]
+        r_i, t_i = rigid_fit(
+            src[i].repeat_interleave(rep, 0)[None], dst[i].repeat_interleave(rep, 0)[None]
+        )
+        torch.testing.assert_close(r_w[i], r_i[0], atol=1e-10, rtol=0)
+        torch.testing.assert_close(t_w[i], t_i[0], atol=1e-10, rtol=0)
+    far = dst.clone()
+    far[:, 5] += 100.0
+    w = torch.ones(3, 12, dtype=F64)
+    w[:, 5] = 0.0
+    r_a, t_a = rigid_fit(src, far, w)
+    r_b, t_b = rigid_fit(src[:, torch.arange(12) != 5], dst[:, torch.arange(12) != 5])
+    torch.testing.assert_close(r_a, r_b, atol=1e-10, rtol=0)
+    torch.testing.assert_close(t_a, t_b, atol=1e-10, rtol=0)
+    shared = torch.rand(12, generator=g, dtype=F64) + 0.1  # one weight vector for the batch
+    r_s, _ = rigid_fit(src, dst, shared)
+    r_e, _ = rigid_fit(src, dst, shared.expand(3, 12))
+    torch.testing.assert_close(r_s, r_e, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="one per point"):
+        rigid_fit(src, dst, torch.ones(3, 11, dtype=F64))
+    with pytest.raises(ValueError, match="one per point"):
+        rigid_fit(src, dst, -torch.ones(3, 12, dtype=F64))
+    with pytest.raises(ValueError, match="positive total"):
+        rigid_fit(src, dst, torch.zeros(3, 12, dtype=F64))
+
+
 def test_part_rotations_round_trip_and_twist_comes_from_the_reference(posed):
     """On a posture of the model every capsule comes back where it was: to 0.1 mm for single
     bones (the reference pull's weight against theirs), within what the spec's chains bend (pelvis, torso: BodySpec.rigidity, ~1 cm of
