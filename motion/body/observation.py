@@ -238,6 +238,12 @@ class RestLayers:
         return cls(label, inf, inf, label)
 
 
+#: metres per part index added to the depths only to order them in :func:`body_layers`:
+#: ties within it go to the lower index. Far above float32 rounding at camera depths
+#: (~5e-7 m at 5 m), far below any part's radius (15 parts: 0.14 mm at most).
+DEPTH_TIE_BREAK = 1e-5
+
+
 def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) -> RestLayers:
     """Render the nearest two surfaces of all parts at every pixel.
 
@@ -277,7 +283,12 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
         z = depth[..., 0:1] + t * (depth[..., 1:2] - depth[..., 0:1])
         z = torch.where(sdf <= 0, z, torch.full_like(z, math.inf))
         if p >= 2:
-            top2, idx = torch.topk(z, 2, dim=-2, largest=False)
+            # adjacent parts meet at a joint at one depth: there the nearest is chosen by
+            # part index, not by rounding (CPU and CUDA rounded such ties apart, which gave
+            # the Intensity cue another covered colour); the depths kept are the true ones
+            order = z + DEPTH_TIE_BREAK * torch.arange(p, dtype=dtype, device=dev)[:, None]
+            idx = torch.topk(order, 2, dim=-2, largest=False).indices
+            top2 = z.gather(-2, idx)
             first, nxt = top2[:, 0], top2[:, 1]
             idx_next = idx[:, 1]
         else:

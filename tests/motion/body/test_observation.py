@@ -29,7 +29,15 @@ from motion.body.observation import (
     poses_from_segments,
     segment_distance,
 )
-from motion.render import _grid, capsule_sdf, label_map, outline_points, project_parts, silhouette
+from motion.render import (
+    ProjectedParts,
+    _grid,
+    capsule_sdf,
+    label_map,
+    outline_points,
+    project_parts,
+    silhouette,
+)
 from pgm import SE3, AnnealingStep, Geometric
 from tests.motion.body.conftest import F64, side_camera, walk_segments
 
@@ -163,6 +171,34 @@ def test_body_layers_equal_label_maps(scene, shift):
         want = torch.where(rest_labels[0] >= 0, torch.tensor(others)[rest_labels[0]], -1)
         # where two surfaces tie in depth either may come first: a few pixels
         assert (front != want).sum() < 5, (front != want).sum()
+
+
+def test_body_layers_break_depth_ties_by_part_index_not_by_rounding():
+    """Two capsules meeting at a joint at one depth (the wedge around the joint has both at
+    the joint's depth): whichever of them a rounding error makes nearer by 1e-12 m, the
+    label there is the lower part index, and the depths kept are the true ones (the cause
+    of CPU and CUDA disagreeing on the Intensity cue's covered colour); a real gap of
+    1 mm still decides."""
+    ends = torch.tensor([[[20.0, 30.0], [40.0, 30.0]], [[40.0, 30.0], [40.0, 50.0]]], dtype=F64)
+    radii = torch.full((2, 2), 6.0, dtype=F64)
+    for eps in (1e-12, -1e-12):
+        depth = torch.tensor([[4.0, 5.0], [5.0 + eps, 6.0]], dtype=F64)
+        layers = body_layers(
+            ProjectedParts(ends[None, None, None], radii, depth[None, None, None]), 60, 60
+        )
+        wedge = (44, 26)  # u, v: beyond both segments' ends, inside both caps
+        v, u = wedge[1], wedge[0]
+        assert (
+            int(layers.label[0, 0, 0, v, u]) == 0 and int(layers.second_label[0, 0, 0, v, u]) == 1
+        )
+        # each layer keeps its own part's true depth
+        assert float(layers.near[0, 0, 0, v, u]) == 5.0
+        assert float(layers.second[0, 0, 0, v, u]) == 5.0 + eps
+    deeper = torch.tensor([[4.0, 5.0], [5.0 - 1e-3, 6.0]], dtype=F64)  # a real gap still wins
+    layers = body_layers(
+        ProjectedParts(ends[None, None, None], radii, deeper[None, None, None]), 60, 60
+    )
+    assert int(layers.label[0, 0, 0, 26, 44]) == 1
 
 
 def test_edge_cue_equals_the_mean_edge_distance_along_the_outline(scene):
