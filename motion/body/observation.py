@@ -275,6 +275,7 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
     near = torch.full((n, height * width), math.inf, dtype=dtype, device=dev)
     second = near.clone()
     u = torch.arange(box_w, dtype=dtype, device=dev)
+    tie = DEPTH_TIE_BREAK * torch.arange(p, dtype=dtype, device=dev)[:, None]  # (P, 1)
     for top in range(0, box_h, rows):
         v = torch.arange(top, min(top + rows, box_h), dtype=dtype, device=dev)
         local = torch.stack(torch.meshgrid(v, u, indexing="ij")[::-1], -1).reshape(-1, 2)
@@ -286,8 +287,7 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
             # adjacent parts meet at a joint at one depth: there the nearest is chosen by
             # part index, not by rounding (CPU and CUDA rounded such ties apart, which gave
             # the Intensity cue another covered colour); the depths kept are the true ones
-            order = z + DEPTH_TIE_BREAK * torch.arange(p, dtype=dtype, device=dev)[:, None]
-            idx = torch.topk(order, 2, dim=-2, largest=False).indices
+            idx = torch.topk(z + tie, 2, dim=-2, largest=False).indices
             top2 = z.gather(-2, idx)
             first, nxt = top2[:, 0], top2[:, 1]
             idx_next = idx[:, 1]
