@@ -242,6 +242,8 @@ class RestLayers:
 #: ties within it go to the lower index. Far above float32 rounding at camera depths
 #: (~5e-7 m at 5 m), far below any part's radius (15 parts: 0.14 mm at most).
 DEPTH_TIE_BREAK = 1e-5
+#: pixels where :func:`body_layers` puts a part the cameras cannot image: off every image
+_NOWHERE = -1e6
 
 
 def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) -> RestLayers:
@@ -260,6 +262,16 @@ def body_layers(parts: ProjectedParts, height: int, width: int, rows: int = 32) 
     ends = parts.ends.reshape(n, p, 2, 2)
     radii = parts.radii.expand(*lead, p, 2).reshape(n, p, 2)
     depth = parts.depth.reshape(n, p, 2)
+    # a part the cameras cannot image (a NaN pose, a point at the camera's centre) covers
+    # nothing: far off the image, no width, infinitely deep
+    imaged = (
+        torch.isfinite(ends).all(-1).all(-1)
+        & torch.isfinite(radii).all(-1)
+        & torch.isfinite(depth).all(-1)
+    )[..., None]  # (n, P, 1)
+    ends = torch.where(imaged[..., None], ends, torch.full_like(ends, _NOWHERE))
+    radii = torch.where(imaged, radii, torch.zeros_like(radii))
+    depth = torch.where(imaged, depth, torch.full_like(depth, math.inf))
     reach = radii.amax(-1)[..., None]  # (n, P, 1)
     top_left = (ends.amin(-2) - reach).amin(-2).floor()  # (n, 2) u, v
     bottom_right = (ends.amax(-2) + reach).amax(-2).ceil()
@@ -692,7 +704,10 @@ class BodyObservation(UnaryFactor):
     def log_potential(self, x: Tensor, nodes: Tensor, estimates: Tensor) -> Tensor:
         samples = self.samples(x, nodes, estimates)
         total = sum(cue.score(samples, self.obs) for cue in self.cues)
-        return self.multiplier * total.sum(2)
+        total = self.multiplier * total.sum(2)
+        # every cue is finite on a part the cameras can image; a hypothesis they cannot (a
+        # NaN pose, an end at a camera's centre) is impossible, not an error
+        return torch.where(torch.isfinite(total), total, torch.full_like(total, -math.inf))
 
     def samples(self, x: Tensor, nodes: Tensor, estimates: Tensor) -> Samples:
         """The shared rendering products of one call (see :class:`Samples`).
@@ -740,8 +755,9 @@ class BodyObservation(UnaryFactor):
         h, w = self.obs.size
         b, t = layers.label.shape[:2]
         c = self.rig.num_cameras
-        u = points[..., 0].round()
-        v = points[..., 1].round()
+        # a point the camera cannot image (NaN) is outside, not a pixel index
+        u = torch.nan_to_num(points[..., 0].round(), nan=-1.0)
+        v = torch.nan_to_num(points[..., 1].round(), nan=-1.0)
         inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
         pix = v.clamp(0, h - 1).long() * w + u.clamp(0, w - 1).long()
         dev = points.device

@@ -201,6 +201,37 @@ def test_body_layers_break_depth_ties_by_part_index_not_by_rounding():
     assert int(layers.label[0, 0, 0, 26, 44]) == 1
 
 
+def test_a_hypothesis_the_camera_cannot_image_is_impossible_not_a_crash(scene):
+    """NaN and infinite poses (what a diverged solver hands over) score -inf -- potential
+    0, which particle BP accepts -- instead of being cast to pixel indices (an IndexError
+    before); the finite hypotheses beside them score exactly as without them."""
+    _, poses, _, _, _, x, _ = scene
+    f = _factor(scene, [Silhouette()])
+    clean = f.log_potential(x, torch.arange(15), poses)
+    broken = x.clone()
+    broken[0, 3, 1, 0] = float("nan")  # a position
+    broken[0, 4, 2, 5] = float("inf")  # a quaternion entry
+    got = f.log_potential(broken, torch.arange(15), poses)
+    assert float(got[0, 3, 1]) == -math.inf and float(got[0, 4, 2]) == -math.inf
+    keep = torch.ones_like(got, dtype=torch.bool)
+    keep[0, 3, 1] = keep[0, 4, 2] = False
+    torch.testing.assert_close(got[keep], clean[keep], rtol=0, atol=0)
+
+
+def test_a_rest_part_the_camera_cannot_image_covers_nothing(scene):
+    """A NaN estimate of one part in the rest of the body: every score equals the one with
+    that part moved 1 km to the side, out of every image (covering nothing)."""
+    _, poses, _, _, _, x, _ = scene
+    f = _factor(scene, [Silhouette()])
+    lost, away = poses.clone(), poses.clone()
+    lost[0, 5, :3] = float("nan")
+    away[0, 5, 0] += 1000.0
+    nodes = torch.arange(15)
+    torch.testing.assert_close(
+        f.log_potential(x, nodes, lost), f.log_potential(x, nodes, away), rtol=0, atol=1e-12
+    )
+
+
 def test_edge_cue_equals_the_mean_edge_distance_along_the_outline(scene):
     """Occlusion off, one part at a time: the outline term equals the length-weighted mean
     of the truncated squared distance along the exact capsule outline (500 points of
