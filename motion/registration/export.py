@@ -763,12 +763,19 @@ def load_registration(path: str | Path) -> Registration:
         keys = set(data.files)
         if "format" not in keys or str(data["format"]) != _FORMAT:
             raise RegistrationError(f"{path}: not a saved registration (expected {_FORMAT!r})")
-        names = [f.name for f in dataclasses.fields(Registration)]
-        missing = [n for n in names if n not in keys]
+        fields = dataclasses.fields(Registration)
+        optional = {
+            f.name
+            for f in fields
+            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+        }
+        missing = [f.name for f in fields if f.name not in keys and f.name not in optional]
         if missing:
             raise RegistrationError(f"{path}: missing fields {missing}")
         values = {}
-        for f in dataclasses.fields(Registration):
+        for f in fields:
+            if f.name not in keys:  # an older file: the field's default
+                continue
             arr = data[f.name]
             if arr.dtype.kind == "U":
                 values[f.name] = json.loads(str(arr))

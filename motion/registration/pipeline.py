@@ -42,6 +42,8 @@ from motion.registration.types import (
     Registration,
     RegistrationError,
     VideoFeatures,
+    frame_ranges,
+    nonfinite_frames,
     scaled_spec,
 )
 from motion.render import project_parts
@@ -102,6 +104,37 @@ def _fill_unseen(stage1: Stage1Result, seen: Tensor) -> Stage1Result:
         translation=stage1.translation[nearest],
         cost=stage1.cost[nearest],
     )
+
+
+def _carry_over_nonfinite(stage1: Stage1Result, name: str) -> tuple[Stage1Result, list[str]]:
+    """Stage 1's frames whose ``T`` or cost is NaN or infinite (a pair fit that diverged)
+    take C and T from their finite neighbours, as unseen frames do (:func:`_fill_unseen`),
+    with a warning naming them; with no finite frame at all, a one-line error."""
+    bad = nonfinite_frames(stage1.rotation, stage1.translation, stage1.cost)
+    if not len(bad):
+        return stage1, []
+    frames = stage1.C.shape[0]
+    if len(bad) == frames:
+        raise RegistrationError(
+            f"{name}: stage 1 found no finite body transform on any of the {frames} video "
+            "frames (its pair fits diverged to NaN): the silhouettes may not show a body "
+            "the reference's postures can cover"
+        )
+    good = torch.ones(frames, dtype=torch.bool)
+    good[bad] = False
+    kept = good.nonzero().flatten()
+    known = dataclasses.replace(
+        stage1,
+        C=stage1.C[kept],
+        rotation=stage1.rotation[kept],
+        translation=stage1.translation[kept],
+        cost=stage1.cost[kept],
+    )
+    warning = (
+        f"video frames {frame_ranges(bad)} (counted from the first registered frame): stage 1's "
+        "body transform diverged (NaN); they carry their neighbours' C and T"
+    )
+    return _fill_unseen(known, good), [warning]
 
 
 def register(
@@ -168,6 +201,7 @@ def register(
     if not bool(seen.all()):
         stage1 = _fill_unseen(stage1, seen)
         notes["unseen_frames"] = str(int((~seen).sum()))
+    stage1, warnings = _carry_over_nonfinite(stage1, video.name)
     timings["stage1"] = time.perf_counter() - t0
     notes["stage1_pairs"] = str(stage1.pair_evaluations)
 
@@ -184,6 +218,7 @@ def register(
         progress=progress,
     )
     timings["stages23"] = time.perf_counter() - t0
+    warnings += refined.warnings
     notes["stage3_rounds"] = f"{len(refined.c_changes)} (frames changed: {refined.c_changes})"
 
     c = refined.C
@@ -203,4 +238,5 @@ def register(
         C_stage1=stage1.C,
         timings=timings,
         notes=notes,
+        warnings=warnings,
     )

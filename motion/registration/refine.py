@@ -55,6 +55,8 @@ from motion.registration.types import (
     Reference,
     RegistrationError,
     VideoFeatures,
+    frame_ranges,
+    nonfinite_frames,
     scaled_spec,
 )
 from motion.render import project_parts
@@ -247,7 +249,8 @@ class RefineResult:
     rotations: ``(T', J, 3, 3)`` local (root's = T's rotation); translation: ``(T', 3)``
     root position, metres; rounds: stage 3 rounds run; c_changes: frames whose C changed in
     each round; particle_poses: ``(T', P, 7)`` particle BP's own estimate of each part
-    (free parts, before the skeleton fit and the smoothing), for diagnostics."""
+    (free parts, before the skeleton fit and the smoothing), for diagnostics; warnings:
+    sentences naming frames where BP found no finite posture (they keep their start)."""
 
     poses: Tensor
     C: Tensor
@@ -256,6 +259,7 @@ class RefineResult:
     rounds: int
     c_changes: list[int]
     particle_poses: Tensor
+    warnings: list[str] = field(default_factory=list)
 
 
 # -- geometry helpers -----------------------------------------------------------------------
@@ -629,6 +633,12 @@ def refine(
             f"expected C ({t},), rotation ({t}, 3, 3), translation ({t}, 3); got "
             f"{tuple(c.shape)}, {tuple(rotation.shape)}, {tuple(translation.shape)}"
         )
+    bad = nonfinite_frames(rotation, translation)
+    if len(bad):
+        raise RegistrationError(
+            f"stages 2-3: the start transform T is NaN or infinite on video frames "
+            f"{frame_ranges(bad)}; expected finite rotations and translations (stage 1's)"
+        )
     problem = _problem(reference, video, scale, s)
     rotation, translation = rotation.float(), translation.float()
     if colours is None and video.observation.image is not None and s.intensity > 0:
@@ -641,6 +651,7 @@ def refine(
     c = c.clone()
     poses = torch.zeros(t, reference.spec.num_parts, 7)
     changes: list[int] = []
+    lost: set[int] = set()  # frames where BP found no finite posture
     rounds = 1 + (s.rounds if s.refine_c else 0)
     for r in range(rounds):
         couple = r > 0
@@ -649,6 +660,9 @@ def refine(
         for i in wrap(range(len(starts)), label, len(starts)):
             sl = slice(starts[i], min(t, starts[i] + s.window))
             est, c_win = _run_window(problem, sl, c[sl], rotation[sl], translation[sl], couple, g)
+            est, c_win = _keep_start_where_lost(
+                problem, est, c_win, c[sl], rotation[sl], translation[sl], sl.start, lost
+            )
             mine = owner[sl] == i
             poses[sl][mine] = est[mine]
             new_c[sl][mine] = c_win[mine]
@@ -666,7 +680,37 @@ def refine(
     if s.smooth_s > 0:
         local, root = smooth_posture(reference, c, local, root, s.smooth_s * video.frame_rate)
     skeleton = place_poses(local[:, 0], root, reference.posture_poses(local, scale)).to(poses)
-    return RefineResult(skeleton, c, local, root, rounds, changes, poses)
+    warnings = []
+    if lost:
+        warnings.append(
+            f"video frames {frame_ranges(sorted(lost))} (counted from the first registered "
+            "frame): particle BP found no finite posture there (every hypothesis of a part "
+            "was impossible); they keep stage 1's posture"
+        )
+    return RefineResult(skeleton, c, local, root, rounds, changes, poses, warnings)
+
+
+def _keep_start_where_lost(
+    problem: _Problem,
+    est: Tensor,
+    c_win: Tensor,
+    c: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    first: int,
+    lost: set[int],
+) -> tuple[Tensor, Tensor]:
+    """A window's frames whose estimate ``est`` ``(n, P, 7)`` is not finite take the start
+    posture (``c``, ``T``) instead; their indices (``first`` + offset) are added to
+    ``lost``."""
+    bad = nonfinite_frames(est)
+    if not len(bad):
+        return est, c_win
+    est, c_win = est.clone(), c_win.clone()
+    est[bad] = place_poses(rotation[bad], translation[bad], problem.body[c[bad]]).to(est)
+    c_win[bad] = c[bad]
+    lost.update((bad + first).tolist())
+    return est, c_win
 
 
 def smooth_posture(

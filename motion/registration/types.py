@@ -37,6 +37,8 @@ __all__ = [
     "Registration",
     "RegistrationError",
     "VideoFeatures",
+    "frame_ranges",
+    "nonfinite_frames",
     "scaled_spec",
 ]
 
@@ -138,6 +140,31 @@ class Reference:
         return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
 
 
+def nonfinite_frames(*per_frame: Tensor) -> Tensor:
+    """The frames (indices along dim 0, shared by every tensor) where any value of any of
+    ``per_frame`` is NaN or infinite: ``(F, ...)`` each -> ``(n,)`` long, ascending."""
+    bad = torch.zeros(per_frame[0].shape[0], dtype=torch.bool, device=per_frame[0].device)
+    for x in per_frame:
+        bad |= ~torch.isfinite(x.reshape(x.shape[0], -1)).all(1)
+    return bad.nonzero().flatten().cpu()
+
+
+def frame_ranges(frames: Tensor | list[int], most: int = 6) -> str:
+    """Frame indices as runs for a message: ``[3, 4, 5, 9]`` -> ``"3-5, 9"`` (the first
+    ``most`` runs, then ``"and N more"``)."""
+    values = sorted(int(f) for f in (frames.tolist() if isinstance(frames, Tensor) else frames))
+    runs: list[list[int]] = []
+    for f in values:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    text = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:most]]
+    if len(runs) > most:
+        text.append(f"and {sum(b - a + 1 for a, b in runs[most:])} more")
+    return ", ".join(text)
+
+
 def scaled_spec(spec: BodySpec, scale: float | Tensor) -> BodySpec:
     """The spec of a body ``scale`` (G) times the size: capsule axes, radii and joint
     offsets multiplied; rotations, tree and limits unchanged."""
@@ -230,6 +257,8 @@ class Registration:
         C_stage1: ``(T',)`` C after approximate registration (stage 1).
         timings: seconds per stage (``"stage0"``, ``"stage1"``, ``"stage2"``, ...).
         notes: what was estimated and how (e.g. the body scale's source), for reports.
+        warnings: sentences for the user about what the result cannot be trusted for
+            (e.g. frames whose transform had to be carried over from their neighbours).
     """
 
     C: Tensor
@@ -242,6 +271,7 @@ class Registration:
     C_stage1: Tensor
     timings: dict[str, float] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def num_frames(self) -> int:

@@ -5,16 +5,18 @@ refused."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
 
 from motion.body.observation import Observation, PartShapes
 from motion.registration import Registration, RegistrationError, RegistrationSettings, register
+from motion.registration.approximate import Stage1Result
 from motion.registration.inputs import features_from_sequence
-from motion.registration.pipeline import silhouette_iou
+from motion.registration.pipeline import _carry_over_nonfinite, silhouette_iou
 from motion.registration.refine import RefineSettings, place_poses
-from motion.registration.types import Reference
+from motion.registration.types import Reference, frame_ranges
 from motion.synth import SynthConfig, synthesize
 from tests.motion.body.conftest import WALK
 
@@ -101,3 +103,33 @@ def test_uint8_frames_give_the_same_registration(short):
     runs = [register(ref, v, settings=QUICK) for v in (video.cut(slice(0, 12)), small)]
     for name in ("C", "C_stage1", "rotations", "T_translation", "fit"):
         assert torch.equal(getattr(runs[0], name), getattr(runs[1], name)), name
+
+
+def test_frame_ranges_name_runs_of_frames():
+    assert frame_ranges([9, 3, 4, 5]) == "3-5, 9"
+    assert frame_ranges(torch.tensor([0])) == "0"
+    assert frame_ranges(list(range(0, 20, 2)), most=3) == "0, 2, 4, and 7 more"
+
+
+def test_stage1_frames_that_diverged_carry_their_neighbours_c_and_t():
+    """NaN on frames 2-3 of 6: they take C interpolated and T from the nearest finite
+    frame (as unseen frames do), with a warning naming them; all NaN: a one-line error."""
+    c = torch.tensor([0, 4, 8, 12, 16, 20])
+    rot = torch.eye(3, dtype=torch.float64).repeat(6, 1, 1)
+    pos = torch.arange(18, dtype=torch.float64).reshape(6, 3)
+    pos[2:4] = float("nan")
+    stage1 = Stage1Result(c, rot, pos, torch.zeros(6, dtype=torch.float64), 0, 0.0)
+    fixed, warnings = _carry_over_nonfinite(stage1, "clip.mp4")
+    assert fixed.C.tolist() == [0, 4, 8, 12, 16, 20]  # interpolated between 4 and 16
+    torch.testing.assert_close(fixed.translation[2], pos[1])
+    torch.testing.assert_close(fixed.translation[3], pos[4])
+    assert warnings == [
+        "video frames 2-3 (counted from the first registered frame): stage 1's body "
+        "transform diverged (NaN); they carry their neighbours' C and T"
+    ]
+    same, none = _carry_over_nonfinite(
+        dataclasses.replace(stage1, translation=pos.nan_to_num()), "x"
+    )
+    assert none == [] and same.translation is not None
+    with pytest.raises(RegistrationError, match=r"^clip.mp4: stage 1 found no finite body"):
+        _carry_over_nonfinite(dataclasses.replace(stage1, translation=pos * math.nan), "clip.mp4")

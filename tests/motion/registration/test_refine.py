@@ -323,3 +323,37 @@ def test_bad_inputs_are_refused(student):
     with pytest.raises(RegistrationError, match="articulation_outlier_std must exceed"):
         RefineSettings(articulation_outlier=0.1, articulation_outlier_std=0.05)
     assert math.isfinite(float(c.float().mean()))
+
+
+def test_a_nan_start_transform_is_refused_naming_its_frames(student):
+    _, ref, video, c, rot, pos = student
+    broken = pos.clone()
+    broken[[3, 4, 5, 9]] = float("nan")
+    with pytest.raises(RegistrationError, match=r"NaN or infinite on video frames 3-5, 9;"):
+        refine(ref, video, c, rot, broken, 1.0)
+
+
+def test_frames_where_bp_finds_no_finite_posture_keep_their_start(student, monkeypatch):
+    """Where particle BP hands back NaN (every hypothesis of a part impossible), those
+    frames take the start posture and C, the others BP's, and a warning names them."""
+    import motion.registration.refine as refine_module
+
+    _, ref, video, c, rot, pos = student
+    video, c, rot, pos = video.cut(slice(0, 4)), c[:4], rot[:4], pos[:4]
+    run_window = refine_module._run_window
+
+    def losing(problem, frames, *args):
+        est, c_win = run_window(problem, frames, *args)
+        if frames.start == 0:
+            est = est.clone()
+            est[2, 5, 0] = float("nan")
+        return est, c_win
+
+    monkeypatch.setattr(refine_module, "_run_window", losing)
+    s = RefineSettings(particles=20, iterations=2, restarts=1, refine_c=False, smooth_s=0.0)
+    res = refine(ref, video, c, rot, pos, 1.0, s, torch.Generator().manual_seed(0))
+    problem = _problem(ref, video, 1.0, s)
+    start = place_poses(rot[2:3].float(), pos[2:3].float(), problem.body[c[2:3]])[0]
+    torch.testing.assert_close(res.particle_poses[2], start.to(res.particle_poses))
+    assert torch.isfinite(res.poses).all() and torch.isfinite(res.rotations).all()
+    assert len(res.warnings) == 1 and res.warnings[0].startswith("video frames 2 ")
