@@ -362,6 +362,7 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
     )
     if video.note:
         reg.notes["cameras"] = video.note
+    reg.warnings[:0] = video.warnings
     stage = Path(tempfile.mkdtemp(dir=job.out, prefix=".partial-"))
     try:
         summary, files = _write_outputs(stage, job, cfg, reference, video, reg, show_progress)

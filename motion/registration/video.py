@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -163,6 +163,13 @@ class VideoSettings(Settings):
     colour: bool = setting(
         True, "keep the colour frames as the observation's image (4 bytes per pixel channel)"
     )
+    truncated: str = setting(
+        "error",
+        "a video that stops decoding before the frames its file declares (cut short or "
+        "corrupt): error (stop, naming the file and its last good frame) or keep "
+        "(register the frames up to it, with a warning)",
+        choices=("error", "keep"),
+    )
 
     def validate(self) -> None:
         """Check (and normalise) every field, then ``canny_low <= canny_high`` and an even
@@ -202,6 +209,7 @@ class VideoInput:
         paths: the videos, one per camera.
         start, step: the first frame of the files kept and the step between kept frames
             (frame ``i`` of the features is frame ``start + i * step`` of the files).
+        warnings: sentences for the user about the input (a video cut short and kept).
     """
 
     features: VideoFeatures
@@ -211,6 +219,7 @@ class VideoInput:
     paths: list[Path]
     start: int = 0
     step: int = 1
+    warnings: list[str] = field(default_factory=list)
 
 
 def default_camera(
@@ -293,6 +302,40 @@ def _check_probes(paths: list[Path], probes: list[_Probe], settings: VideoSettin
             "synchronised cameras must have the same rate"
         )
     return rates[0]
+
+
+#: frames by which decoding may fall short of a container's declared count before the video
+#: counts as cut short: some containers estimate the count from duration x rate
+TRUNCATION_SLACK_FRAMES = 2
+
+
+def _check_truncation(
+    paths: list[Path], probes: list[_Probe], decoded: int, settings: VideoSettings
+) -> list[str]:
+    """A video whose kept frames stop before those its container declares (more than
+    :data:`TRUNCATION_SLACK_FRAMES` short) was cut or is corrupt there: a :class:`VideoError`
+    naming the file and its last good frame, or with ``settings.truncated == "keep"`` a
+    warning (returned) and the frames decoded. Videos that do not declare a count pass."""
+    declared = [pr.frames for pr in probes]
+    if not all(declared):
+        return []
+    expected = len(range(settings.start, min(declared), settings.step))
+    if settings.count is not None:
+        expected = min(expected, settings.count)
+    if decoded >= expected - TRUNCATION_SLACK_FRAMES:
+        return []
+    path = paths[declared.index(min(declared))] if len(paths) > 1 else paths[0]
+    last = settings.start + settings.step * (decoded - 1)
+    what = (
+        f"{path}: the video stops decoding after frame {last} (0-based) but its file declares "
+        f"{min(declared)} frames: it is cut short or corrupt from frame {last + 1}"
+    )
+    if settings.truncated == "error":
+        raise VideoError(
+            f"{what}; repair or re-export it, or register the frames up to {last} with "
+            "video.truncated=keep"
+        )
+    return [f"{what}; only the frames up to {last} were registered"]
 
 
 def _check_cameras(paths: list[Path], cameras: CameraRig | None) -> None:
@@ -589,6 +632,7 @@ def features_from_videos(
         step=settings.step,
         scale=scale,
     )
+    warnings = _check_truncation(paths, probes, len(videos[0]), settings)
     native = [(pr.width, pr.height) for pr in probes]
     scaled = [(v.shape[2], v.shape[1]) for v in videos]
     width, height = max(s[0] for s in scaled), max(s[1] for s in scaled)
@@ -642,5 +686,5 @@ def features_from_videos(
         name=", ".join(p.name for p in paths),
     )
     return VideoInput(
-        features, frames, scale, "; ".join(notes), paths, settings.start, settings.step
+        features, frames, scale, "; ".join(notes), paths, settings.start, settings.step, warnings
     )

@@ -269,6 +269,38 @@ def test_bad_videos_are_named_in_one_line(tmp_path):
     )
 
 
+def _decodable(path) -> int:
+    """Frames a plain OpenCV loop decodes from ``path`` (the independent count)."""
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    cap.release()
+    return n
+
+
+def test_a_video_cut_short_is_named_with_its_last_good_frame(tmp_path):
+    """An .avi whose last 40 % of bytes are gone still declares 40 frames: the error names
+    the file and the last frame OpenCV can decode; ``truncated=keep`` registers up to it
+    with a warning; a stretch that ends before the cut reads as usual."""
+    full = tmp_path / "full.avi"
+    _video(full)
+    cut = tmp_path / "cut.avi"
+    data = full.read_bytes()
+    cut.write_bytes(data[: int(0.6 * len(data))])
+    good = _decodable(cut)
+    assert 0 < good < N - 2
+    message = _raises(VideoError, r"cut\.avi: the video stops decoding after frame", [cut])
+    assert f"after frame {good - 1} (0-based) but its file declares {N} frames" in message
+    assert f"up to {good - 1} with video.truncated=keep" in message
+    kept = features_from_videos([cut], None, VideoSettings(truncated="keep"))
+    assert kept.features.num_frames == good
+    assert len(kept.warnings) == 1 and f"only the frames up to {good - 1}" in kept.warnings[0]
+    early = features_from_videos([cut], None, VideoSettings(count=good - 3))
+    assert early.features.num_frames == good - 3 and early.warnings == []
+    assert features_from_videos([full], None, VideoSettings()).warnings == []
+
+
 def test_bad_cameras_and_settings_are_named_in_one_line(tmp_path):
     good = tmp_path / "good.avi"
     _video(good)
