@@ -194,9 +194,7 @@ def rigid_fit(
         raise ValueError("every point set needs a positive total weight")
     mu_s = (weights * source).sum(-2) / total
     mu_t = (weights * target).sum(-2) / total
-    b = (weights * (target - mu_t[..., None, :])).transpose(-1, -2) @ (
-        source - mu_s[..., None, :]
-    )
+    b = (weights * (target - mu_t[..., None, :])).transpose(-1, -2) @ (source - mu_s[..., None, :])
     eye = torch.eye(3, dtype=source.dtype, device=source.device)
     r = _nearest_rotation(b, eye)
     return r, mu_t - (r @ mu_s[..., :, None]).squeeze(-1)

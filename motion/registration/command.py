@@ -45,6 +45,7 @@ from motion.registration.export import (
     write_student_bvh,
 )
 from motion.registration.keypoints import attach_keypoints
+from motion.registration.movement import check_movement
 from motion.registration.pipeline import register
 from motion.registration.render import body_poses, points_in_view, side_by_side_frames
 from motion.registration.report import ReportInputs, write_report
@@ -261,7 +262,12 @@ def _write_outputs(
     angles = joint_angles(reg, reference, rate)
     seen = points_in_view(rig, student_kinematics(reg, reference).positions)
     trusted = joints_trusted(angles, reference, seen) & (reg.fit >= TRUSTED_FIT)[:, None]
-    summary = summarise(reg, reference, angles, rate, settings_dict(cfg), trusted=trusted)
+    movement = check_movement(
+        reg.C, reg.T_translation, reference.root, reference.frame_rate, rate, reg.G, cfg.movement
+    )
+    summary = summarise(
+        reg, reference, angles, rate, settings_dict(cfg), trusted=trusted, movement=movement
+    )
     files = {}
     files["registration.npz"] = save_registration(reg, stage / "registration.npz")
     (stage / "summary.json").write_text(summary.to_json(), encoding="utf-8")
@@ -389,9 +395,19 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
         "(reference seconds per video second)",
         f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; body size G {s.G:.3f}",
     ]
-    if s.largest_differences:
+    reasons = s.movement.get("reasons", [])  # first among the warnings
+    if not s.motions_match:
+        lines.insert(
+            1,
+            "  the student does not seem to perform the reference's movement, so no joint "
+            "difference is stated:",
+        )
+        lines[2:2] = [f"    {w}" for w in reasons]
+    lines += [f"  warning: {w}" for w in s.warnings[len(reasons) :]]
+    stated = [d for d in s.largest_differences if d["stated"]]
+    if stated:
         lines.append("  largest joint differences:")
-        lines += [f"    {d['text']}" for d in s.largest_differences[:3]]
+        lines += [f"    {d['text']}" for d in stated[:3]]
     out = next(iter(outcome.files.values())).parent
     lines.append(
         f"  wrote {len(outcome.files)} files to {out}: report {outcome.files['report.html']}"

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import yaml
 
+from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
 from motion.registration.video import VideoSettings
 
@@ -40,10 +41,13 @@ class RegisterConfig:
     Attributes:
         video: how videos become features (working size, background, person, frames).
         registration: the pipeline's settings (stages 1-3, G, seed).
+        movement: when the student counts as performing another movement than the
+            reference's (:class:`MovementSettings`).
     """
 
     video: VideoSettings = field(default_factory=VideoSettings)
     registration: RegistrationSettings = field(default_factory=RegistrationSettings)
+    movement: MovementSettings = field(default_factory=MovementSettings)
 
 
 def _flatten(values: Mapping, prefix: str = "") -> dict[str, object]:
@@ -175,7 +179,11 @@ def _user_keys() -> list[str]:
     """Every key as the user writes it (``refine.particles``, not
     ``registration.refine.particles``)."""
     cfg = RegisterConfig()
-    return _leaf_keys(cfg.video, "video.") + _leaf_keys(cfg.registration)
+    return (
+        _leaf_keys(cfg.video, "video.")
+        + _leaf_keys(cfg.registration)
+        + _leaf_keys(cfg.movement, "movement.")
+    )
 
 
 def _suggest(key: str) -> list[str]:
@@ -195,7 +203,10 @@ def _unknown(obj, item: _Item, fields) -> ConfigError:
         close = [walked + c for c in difflib.get_close_matches(head, names, n=3)]
     hint = f" (did you mean {' or '.join(close)}?)" if close else ""
     if isinstance(obj, RegisterConfig):
-        known = "video.*, stage1.*, refine.*, scale, seed (python -m motion register --help)"
+        known = (
+            "video.*, stage1.*, refine.*, movement.*, scale, seed (python -m motion "
+            "register --help)"
+        )
     else:
         known = ", ".join(sorted(walked + n for n in fields))
     return ConfigError(f"{item.where}: unknown setting {item.key!r}{hint}; known: {known}")

@@ -26,7 +26,7 @@ import csv
 import dataclasses
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ from torch import Tensor
 
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.kinematics import FKResult, Skeleton, forward_kinematics
+from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
 
 __all__ = [
@@ -815,6 +816,13 @@ class RegistrationSummary:
         timings: seconds per stage.
         notes: what was estimated and how.
         settings: the run's settings as given (JSON-able values; others written as text).
+        motions_match: whether the student performs the reference's movement
+            (:func:`motion.registration.movement.check_movement`); when not, no difference
+            is stated (each of :attr:`largest_differences` has ``stated`` false and ``why``).
+        warnings: sentences for the user, most important first: why the movements do not
+            match, then what the input or the inference could not do (frames carried over,
+            a video cut short).
+        movement: the movement check's evidence (:class:`MovementCheck` as a dict).
     """
 
     reference: str
@@ -833,6 +841,9 @@ class RegistrationSummary:
     timings: dict[str, float]
     notes: dict[str, str]
     settings: dict
+    motions_match: bool = True
+    warnings: list[str] = field(default_factory=list)
+    movement: dict = field(default_factory=dict)
 
     def to_json(self, indent: int | None = 2) -> str:
         """The summary as strict JSON text: NaN and infinities as ``null``; paths, tensors,
@@ -868,6 +879,7 @@ def summarise(
     settings: dict,
     count: int = 3,
     trusted: Tensor | None = None,
+    movement: MovementCheck | None = None,
 ) -> RegistrationSummary:
     """The run in one record (:class:`RegistrationSummary`).
 
@@ -881,7 +893,12 @@ def summarise(
         trusted: ``(T',)`` bool, the frames the largest differences may come from, or
             ``(T', J')`` per frame and joint of ``angles`` (default: ``reg.fit >=
             TRUSTED_FIT``).
+        movement: the movement check (``None``: taken as matching, with no evidence);
+            its reasons come first in :attr:`RegistrationSummary.warnings`, then
+            ``reg.warnings``.
     """
+    matches = movement is None or movement.motions_match
+    why = "" if matches else "the student does not perform the reference's movement"
     if trusted is None:
         trusted = reg.fit >= TRUSTED_FIT
     frame_rate = _check_rate(frame_rate)
@@ -910,7 +927,7 @@ def summarise(
             k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
         },
         largest_differences=[
-            d.to_dict()
+            {**d.to_dict(), "stated": matches, "why": why}
             for d in sorted(
                 largest_differences(trusted_angles(angles, trusted), count),
                 key=lambda d: -abs(d.mean_difference_deg),
@@ -919,4 +936,7 @@ def summarise(
         timings={k: float(v) for k, v in reg.timings.items()},
         notes={k: str(v) for k, v in reg.notes.items()},
         settings=dict(settings),
+        motions_match=matches,
+        warnings=[*(movement.reasons if movement is not None else []), *reg.warnings],
+        movement=movement.to_dict() if movement is not None else {},
     )

@@ -203,8 +203,8 @@ def fit_figure(inputs: ReportInputs) -> str:
 
 
 def key_frames(inputs: ReportInputs, count: int = KEY_FRAMES) -> list[KeyFrame]:
-    """The middle of each of the largest differences, then the best-fitting frame, then
-    evenly spread frames, in time order; a candidate closer than :data:`KEY_FRAME_GAP_S`
+    """The middle of each of the largest differences stated, then the best-fitting frame,
+    then evenly spread frames, in time order; a candidate closer than :data:`KEY_FRAME_GAP_S`
     to one already chosen is skipped (a finding's frame is kept over the others)."""
     time = _video_time(inputs)
     n = len(time)
@@ -216,6 +216,8 @@ def key_frames(inputs: ReportInputs, count: int = KEY_FRAMES) -> list[KeyFrame]:
             chosen[t] = why
 
     for d in inputs.summary.largest_differences:
+        if not d["stated"]:
+            continue
         mid = 0.5 * (d["start_s"] + d["end_s"])
         offer(int(np.argmin(np.abs(time - mid))), d["text"])
     offer(int(np.argmax(inputs.registration.fit.numpy())), "the best-fitting frame")
@@ -303,6 +305,7 @@ def render_report(inputs: ReportInputs) -> str:
         per_joint=[(readable_joint_name(n), n, f"{deg:.1f}") for n, deg in per_joint],
         timings=[(k, f"{v:.1f}") for k, v in s.timings.items()],
         notes=sorted(s.notes.items()),
+        other_warnings=s.warnings[len(s.movement.get("reasons", [])) :],
         files=sorted(inputs.files.items()),
         cameras=", ".join(inputs.rig.names),
     )

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from markupsafe import escape
 
 import motion.registration.command as command
 import motion.registration.export as export
@@ -26,8 +27,21 @@ from motion.draw import write_video
 from motion.registration.config import ConfigError, RegisterConfig, load_config, override
 from motion.registration.export import load_registration
 from motion.registration.types import Reference
-from motion.synth import load_sequence
-from tests.motion.registration.conftest import REFERENCE, register_argv
+from motion.synth import (
+    BACKGROUND_SUFFIX,
+    CALIBRATION_FILE,
+    SynthConfig,
+    load_sequence,
+    save_sequence,
+    synthesize,
+)
+from tests.conftest import SHARED_DATA, requires_shared_data
+from tests.motion.registration.conftest import (
+    REFERENCE,
+    SYNTH,
+    StudentVideo,
+    register_argv,
+)
 from tests.motion.registration.test_keypoints import _body25b, _write_trc
 
 ROBOT_ARM = REFERENCE.parent / "examples" / "robot_arm.bvh"
@@ -95,6 +109,12 @@ def test_summary_json(summary, video_frames):
         for k, v in per_joint.items()
     )
     assert 0.0 <= summary["silhouette_iou_mean"] <= 1.0
+    # another subject's walk is the reference's movement: nothing to warn about
+    assert summary["motions_match"] is True and summary["warnings"] == []
+    movement = summary["movement"]
+    assert movement["reference_travel_m"] > 0.5 and movement["reasons"] == []
+    assert 0.5 <= movement["student_travel_m"] / movement["reference_travel_m"] <= 2
+    assert all(d["stated"] is True and d["why"] == "" for d in summary["largest_differences"])
     assert math.isfinite(summary["time_offset_s"])
     assert math.isfinite(summary["speed_ratio"]) and summary["speed_ratio"] > 0
     # the settings of the run, as given on the command line
@@ -209,6 +229,43 @@ def test_a_report_without_a_trusted_frame_says_so(register_run, tmp_path, monkey
     assert "No frame fits well enough to read joint differences from" in text
     assert "No joint differs from the reference" not in text
     assert json.loads((out / "summary.json").read_text())["largest_differences"] == []
+
+
+@requires_shared_data()
+@pytest.mark.parametrize("movement", ["09_01", "02_04"], ids=["run", "jump"])
+def test_another_movement_is_said_first_and_no_difference_is_stated(movement, tmp_path, capsys):
+    """A CMU run or jump (another subject, ../shared/data) against the bundled walk: the
+    summary, the printed lines and the report say first that the movements differ, and no
+    joint difference is stated (they stay in summary.json with stated false and why)."""
+    seq = synthesize(
+        SHARED_DATA / "bvh" / "cmu_cgspeed" / f"{movement}.bvh", SynthConfig.from_assignments(SYNTH)
+    )
+    save_sequence(seq, tmp_path / "in")
+    (name,) = seq.meta["cameras"]
+    folder = tmp_path / "in"
+    student = StudentVideo(
+        folder,
+        folder / f"{name}.avi",
+        folder / CALIBRATION_FILE,
+        folder / f"{name}{BACKGROUND_SUFFIX}",
+    )
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(register_argv(student, out)) == 0
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["motions_match"] is False
+    reasons = summary["movement"]["reasons"]
+    assert reasons and summary["warnings"][: len(reasons)] == reasons
+    assert all(d["stated"] is False and d["why"] for d in summary["largest_differences"])
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].strip().startswith("the student does not seem to perform the reference")
+    assert printed[2].strip() == reasons[0]
+    assert "largest joint differences" not in "\n".join(printed)
+    text = (out / "report.html").read_text(encoding="utf-8")
+    assert "does not seem to perform the reference's movement" in text
+    assert str(escape(reasons[0])) in text and "Withheld:" in text
+    for d in summary["largest_differences"]:
+        assert str(escape(d["text"])) not in text
 
 
 def test_register_help_lists_the_settings(capsys):

@@ -34,6 +34,7 @@ from motion.registration.export import (
     write_mot,
     write_student_bvh,
 )
+from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
 from tests.motion.body.conftest import WALK
 
@@ -555,12 +556,28 @@ def test_summary_speed_offset_and_json(reference):
     trusted = trusted_angles(angles, reg.fit >= TRUSTED_FIT)
     assert torch.isnan(trusted.difference_deg[3]).all()  # fit NaN: not trusted
     found = sorted(largest_differences(trusted, 3), key=lambda d: -abs(d.mean_difference_deg))
-    assert record["largest_differences"] == [d.to_dict() for d in found]
+    assert record["largest_differences"] == [
+        {**d.to_dict(), "stated": True, "why": ""} for d in found
+    ]
     assert record["largest_differences"][0]["text"] == (
         "Left knee flexes 12 degrees more than the reference between 0.13 s and 1.30 s"
     )
     for key in ("reference", "reference_rate_hz", "video_rate_hz", "speed_ratio"):
         assert key in record
+    assert record["motions_match"] is True and record["warnings"] == []
+
+    # another movement: the same differences kept, none stated, the reasons first
+    reg.warnings = ["video frames 2-3 (...): carried over"]
+    other = MovementCheck(False, ["the reference travels 2.0 m ... the student 0.1 m"])
+    record = json.loads(summarise(reg, reference, angles, 30.0, {}, movement=other).to_json())
+    assert record["motions_match"] is False
+    assert record["warnings"] == [*other.reasons, *reg.warnings]
+    assert record["movement"]["reasons"] == other.reasons
+    assert [d["text"] for d in record["largest_differences"]] == [d.text for d in found]
+    assert all(
+        d["stated"] is False and d["why"] == "the student does not perform the reference's movement"
+        for d in record["largest_differences"]
+    )
 
 
 def test_trusted_angles_drop_untrusted_frames_and_one_frame_spikes():

@@ -1,0 +1,184 @@
+"""Does the student perform the reference's movement? Checked before any finding is stated.
+
+A registration always returns a C, a T and an A, even for a student who runs while the
+reference walks: the monotone chain finds the least bad path, and per-joint differences
+then read the fit's failure as the student's style. This module decides, from the
+registration itself, whether that happened. Each check is a physical property of one
+movement performed by two people, with its threshold in :class:`MovementSettings`:
+
+* **Travel.** Where the reference travels (a walk, a run), the student travels about as far
+  over the same stretch of the reference: per cycle of the movement, i.e. one stride. One
+  gait's stride length ranges over a factor ~1.6 between a slow and a brisk walker, and the
+  registration's C may play the reference up to ~25 % too fast or slow on a periodic motion
+  (which scales the stretch compared), so the ratio stays within a factor 2; a monocular
+  depth estimate and one step's sway add some 0.2 m, so a difference under half a metre
+  says nothing. A student who stays in place (a jump, a balance) against a walk, or covers
+  2.5 times the ground per stride (a run), does not perform it; nor does one who travels
+  metres while the matched stretch of the reference stays in place.
+* **Stalls.** Where the reference has to advance by two or more frames per video frame
+  (its rate over the video's, times the fitted speed), a C that stands still on a fifth of
+  the frames is stop-and-go: the chain held on to one posture because none of the next ones
+  fitted.
+* **Racing.** Advancing by twice the reference's own rate or more (reference frames per
+  video frame over the ratio of the frame rates) on a quarter of the frames, the student
+  moves twice as fast as the reference there: another tempo of movement, or another one (a
+  real student speeds up smoothly, by tens of percent).
+
+Thresholds were set from the physics above and checked (not fitted) on synthetic students
+of the bundled CMU motions and on the real videos; the measurements are in the closing
+notes of issue 39 and the README's results. Speed alone is not a criterion: a slow
+student is a finding, not another movement.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["MovementCheck", "MovementSettings", "check_movement"]
+
+
+@dataclass(frozen=True)
+class MovementSettings:
+    """Thresholds of :func:`check_movement` (see the module's docstring for their grounds).
+
+    Attributes:
+        max_travel_ratio: the student's net displacement over the reference's (over the
+            frames C covers, the reference scaled by G) may lie in ``[1 / r, r]``.
+        travelling_m: travel is compared when the student or the reference moves at least
+            this far (metres, net) over those frames ...
+        min_travel_difference_m: ... and the two displacements differ by more than this
+            (metres).
+        end_window_s: the displacements compare the mean positions over this many seconds
+            at each end (a step's sway averaged out).
+        max_stalled: largest fraction of video frames where C stands still ...
+        stall_min_step: ... counted only where the nominal step (reference frames per video
+            frame at the fitted speed) is at least this.
+        fast_step_factor: a step of C of at least this times ``reference_rate /
+            video_rate`` is racing ...
+        max_fast: ... on at most this fraction of the video's frames.
+    """
+
+    max_travel_ratio: float = 2.0
+    travelling_m: float = 0.5
+    min_travel_difference_m: float = 0.5
+    end_window_s: float = 0.12
+    max_stalled: float = 0.2
+    stall_min_step: float = 2.0
+    fast_step_factor: float = 2.0
+    max_fast: float = 0.25
+
+    def __post_init__(self):
+        for name in ("max_stalled", "max_fast"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise ValueError(f"MovementSettings.{name} must be in (0, 1]; got {value}")
+        if not self.fast_step_factor > 1:
+            raise ValueError(
+                f"MovementSettings.fast_step_factor must exceed 1; got {self.fast_step_factor}"
+            )
+        if not self.max_travel_ratio > 1:
+            raise ValueError(
+                f"MovementSettings.max_travel_ratio must exceed 1; got {self.max_travel_ratio}"
+            )
+
+
+@dataclass(frozen=True)
+class MovementCheck:
+    """The verdict and its evidence.
+
+    Attributes:
+        motions_match: no check failed.
+        reasons: one sentence per failed check (empty when they match).
+        student_travel_m: the student's net displacement, metres.
+        reference_travel_m: the reference's over the frames C covers, scaled by G.
+        stalled_fraction: video frames where C stands still (``None``: not checked, the
+            nominal step is below :attr:`MovementSettings.stall_min_step`).
+        fast_fraction: video frames where C advances at ``fast_step_factor`` times the
+            reference's rate or more.
+        speed_ratio: reference seconds per video second (least-squares slope of C).
+    """
+
+    motions_match: bool
+    reasons: list[str] = field(default_factory=list)
+    student_travel_m: float = math.nan
+    reference_travel_m: float = math.nan
+    stalled_fraction: float | None = None
+    fast_fraction: float = math.nan
+    speed_ratio: float = math.nan
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _net_displacement(positions: Tensor, k: int) -> float:
+    """Metres between the mean of the first ``k`` and of the last ``k`` of ``(F, 3)``."""
+    k = max(1, min(k, positions.shape[0] // 2 or 1))
+    return float((positions[-k:].mean(0) - positions[:k].mean(0)).norm())
+
+
+def check_movement(
+    c: Tensor,
+    translation: Tensor,
+    reference_root: Tensor,
+    reference_rate: float,
+    video_rate: float,
+    scale: float,
+    settings: MovementSettings | None = None,
+) -> MovementCheck:
+    """Decide whether the student performs the reference's movement (module docstring).
+
+    Args:
+        c: ``(T',)`` long, the registration's C.
+        translation: ``(T', 3)`` the student root's positions, metres.
+        reference_root: ``(T, 3)`` the reference root's positions, metres.
+        reference_rate, video_rate: frames per second.
+        scale: G.
+        settings: :class:`MovementSettings` (defaults otherwise).
+
+    Returns:
+        :class:`MovementCheck`.
+    """
+    s = settings or MovementSettings()
+    c = c.to(torch.long).cpu()
+    n = c.shape[0]
+    if n < 2:
+        return MovementCheck(True)
+    steps = np.diff(c.numpy())
+    slope = float(np.polyfit(np.arange(n, dtype=np.float64), c.numpy().astype(np.float64), 1)[0])
+    speed = slope * video_rate / reference_rate
+    k = max(1, round(s.end_window_s * video_rate))
+    student = _net_displacement(translation.detach().cpu().double(), k)
+    ref = _net_displacement(reference_root.detach().cpu().double()[c], k) * scale
+    reasons = []
+    travelling = max(student, ref) >= s.travelling_m
+    apart = abs(student - ref) > s.min_travel_difference_m
+    ratio = student / max(ref, 1e-9)
+    if travelling and apart and not 1 / s.max_travel_ratio <= ratio <= s.max_travel_ratio:
+        times = f"{ratio:.2f} times as far" if ratio < 100 else "far more"
+        reasons.append(
+            f"the reference travels {ref:.1f} m over the matched stretch but the student "
+            f"{student:.1f} m ({times}; the same movement stays within "
+            f"{1 / s.max_travel_ratio:.2f}-{s.max_travel_ratio:.2f})"
+        )
+    stalled = None
+    if slope >= s.stall_min_step:
+        stalled = float((steps == 0).mean())
+        if stalled > s.max_stalled:
+            reasons.append(
+                f"the matching reference moment stands still on {100 * stalled:.0f} % of the "
+                f"video's frames (stop-and-go: no later reference posture fits; at most "
+                f"{100 * s.max_stalled:.0f} % for the same movement)"
+            )
+    fast = float((steps >= s.fast_step_factor * reference_rate / video_rate).mean())
+    if fast > s.max_fast:
+        reasons.append(
+            f"the matching reference moment races ahead at {s.fast_step_factor:g} times the "
+            f"reference's pace or more on {100 * fast:.0f} % of the video's frames (at most "
+            f"{100 * s.max_fast:.0f} % for the same movement)"
+        )
+    return MovementCheck(not reasons, reasons, student, ref, stalled, fast, speed)

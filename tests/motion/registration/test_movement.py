@@ -1,0 +1,125 @@
+"""The movement check (motion.registration.movement) on constructed registrations whose
+travel and time warp are known: a walker at another tempo matches; a student in place, one
+covering 2.5 times the ground, a stop-and-go C and a racing C do not; the verdict does not
+depend on where the world's origin or axes are."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from motion.registration.movement import MovementSettings, check_movement
+
+REF_RATE, VIDEO_RATE = 120.0, 25.0
+F64 = torch.float64
+
+
+def _walking_reference(frames: int = 600, speed: float = 1.2) -> torch.Tensor:
+    """``(frames, 3)`` a root walking along +z at ``speed`` m/s with a 3 cm side sway."""
+    t = torch.arange(frames, dtype=F64) / REF_RATE
+    return torch.stack([0.03 * torch.sin(2 * math.pi * t), 0.95 + 0 * t, speed * t], -1)
+
+
+def _warped_c(n: int = 50, speed: float = 0.9, start: int = 20) -> torch.Tensor:
+    """A smooth monotone C at ``speed`` times the reference's pace with +-15 % tempo drift."""
+    t = torch.arange(n, dtype=F64)
+    pace = speed * REF_RATE / VIDEO_RATE
+    return (start + pace * (t + 1.5 * torch.sin(t / 8))).round().long()
+
+
+def _check(c, translation, root, scale=1.0, **settings):
+    return check_movement(
+        c, translation, root, REF_RATE, VIDEO_RATE, scale, MovementSettings(**settings)
+    )
+
+
+def test_another_walker_at_another_tempo_matches():
+    root = _walking_reference()
+    c = _warped_c()
+    result = _check(c, 1.1 * root[c] + torch.tensor([2.0, 0.0, -1.0], dtype=F64), root, 1.05)
+    assert result.motions_match and result.reasons == []
+    assert result.student_travel_m / result.reference_travel_m == pytest.approx(1.1 / 1.05)
+    design = torch.stack([torch.arange(len(c), dtype=F64), torch.ones(len(c), dtype=F64)], 1)
+    slope = torch.linalg.lstsq(design, c.double()[:, None]).solution[0, 0]
+    assert result.speed_ratio == pytest.approx(float(slope) * VIDEO_RATE / REF_RATE)
+    assert result.stalled_fraction == 0.0 and result.fast_fraction == 0.0
+
+
+def test_the_verdict_does_not_depend_on_the_world_frame():
+    root = _walking_reference()
+    c = _warped_c()
+    angle = torch.tensor(0.7, dtype=F64)
+    turn = torch.tensor(
+        [[angle.cos(), 0, angle.sin()], [0, 1, 0], [-angle.sin(), 0, angle.cos()]], dtype=F64
+    )
+    student = 2.6 * root[c]  # a run: 2.6 times the ground
+    moved = student @ turn.T + torch.tensor([5.0, -1.0, 3.0], dtype=F64)
+    a, b = _check(c, student, root), _check(c, moved, root)
+    assert not a.motions_match and a.reasons == b.reasons
+    assert a.student_travel_m == pytest.approx(b.student_travel_m)
+
+
+def test_a_student_in_place_or_covering_far_more_ground_does_not_match():
+    root = _walking_reference()
+    c = _warped_c()
+    in_place = root[c][:1].expand(len(c), 3) + 0.05 * torch.randn(
+        len(c), 3, dtype=F64, generator=torch.Generator().manual_seed(0)
+    )
+    jump = _check(c, in_place, root)
+    assert not jump.motions_match and len(jump.reasons) == 1
+    assert jump.reasons[0].startswith("the reference travels")
+    run = _check(c, 2.5 * root[c], root)
+    assert not run.motions_match and "2.50 times as far" in run.reasons[0]
+
+
+def test_a_difference_under_half_a_metre_says_nothing():
+    """A reference that drifts 0.6 m; the student 0.35 m (ratio 0.58, outside 1/1.6 but
+    within one step's sway and the depth estimate's error): matches."""
+    root = _walking_reference(speed=0.3)
+    c = _warped_c(n=50, speed=1.0, start=0)  # 2 s of the reference: 0.6 m
+    result = _check(c, 0.58 * root[c], root)
+    assert result.reference_travel_m > 0.5 and result.motions_match
+
+
+def test_a_reference_in_place_against_a_travelling_student_does_not_match():
+    root = _walking_reference(speed=0.0)
+    c = _warped_c()
+    walker = torch.zeros(len(c), 3, dtype=F64)
+    walker[:, 2] = torch.linspace(0, 2.5, len(c), dtype=F64)
+    result = _check(c, walker, root)
+    assert (
+        not result.motions_match
+        and "over the matched stretch but the student 2.4 m" in result.reasons[0]
+    )
+    assert _check(c, 0 * walker, root).motions_match
+
+
+def test_stop_and_go_or_racing_c_does_not_match():
+    root = _walking_reference(speed=0.0)
+    steps = torch.full((49,), 5)
+    steps[::3] = 0  # a third of the frames stand still
+    c = torch.cat([torch.zeros(1, dtype=torch.long), steps.cumsum(0)])
+    still = _check(c, root[c], root)
+    assert not still.motions_match and still.stalled_fraction == pytest.approx(17 / 49)
+    assert "stands still on 35 %" in still.reasons[0]
+    racing = torch.full((49,), 4)
+    racing[::2] = 10  # 2.08 x the frame-rate ratio (4.8) on half the frames
+    c = torch.cat([torch.zeros(1, dtype=torch.long), racing.cumsum(0)])
+    fast = _check(c, root[c], root)
+    assert not fast.motions_match and fast.fast_fraction == pytest.approx(25 / 49)
+    assert "races ahead" in fast.reasons[0]
+    # a video at the reference's own rate moves C by about one frame: stalls are normal
+    slow = torch.cat([torch.zeros(1, dtype=torch.long), (torch.arange(49) % 2).cumsum(0)])
+    at_rate = check_movement(slow, root[slow], root, REF_RATE, REF_RATE, 1.0)
+    assert at_rate.stalled_fraction is None and at_rate.motions_match
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError, match=r"max_stalled must be in \(0, 1\]"):
+        MovementSettings(max_stalled=0.0)
+    with pytest.raises(ValueError, match="max_travel_ratio must exceed 1"):
+        MovementSettings(max_travel_ratio=1.0)
+    with pytest.raises(ValueError, match="fast_step_factor must exceed 1"):
+        MovementSettings(fast_step_factor=0.5)
