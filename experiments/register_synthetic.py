@@ -13,7 +13,9 @@ Metrics: ``c_err_mean`` and ``c_err_mean_stage1`` (reference frames, after refin
 after stage 1), ``t_rot_err_deg_mean`` (root rotation), ``t_pos_err_mean`` (root position,
 fraction of height), ``a_err_deg_mean`` (articulation error over the joints the body parts
 drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of height),
-``silhouette_iou_mean``; ``a_swing_err_deg_mean`` is the articulation error without the
+``silhouette_iou_mean``; ``motions_match`` (1: :func:`motion.registration.movement.
+check_movement` finds the reference's movement, as ``motion register`` reports it) with its
+evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``; ``a_swing_err_deg_mean`` is the articulation error without the
 twist about each bone (what a capsule body can show); ``sec_per_video_frame`` and per stage in timings.json.
 """
 
@@ -36,6 +38,7 @@ from motion.kinematics import euler_to_matrix, forward_kinematics
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
 from motion.registration.inputs import features_from_sequence
+from motion.registration.movement import check_movement
 from motion.registration.refine import RefineSettings
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
@@ -218,6 +221,14 @@ def run(cfg: RegisterSyntheticConfig):
     t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
     joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
     e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height
+    movement = check_movement(
+        result.C,
+        result.T_translation,
+        reference.root,
+        reference.frame_rate,
+        video.frame_rate,
+        result.G,
+    )
     c_err = (result.C - truth.C).abs().double()
     c_err1 = (result.C_stage1 - truth.C).abs().double()
     metrics = {
@@ -230,6 +241,10 @@ def run(cfg: RegisterSyntheticConfig):
         "e3d_mean": float(e3d.mean()),
         "silhouette_iou_mean": float(result.fit.mean()),
         "G": float(result.G),
+        "motions_match": float(movement.motions_match),
+        "travel_ratio": movement.student_travel_m / max(movement.reference_travel_m, 1e-9),
+        "c_stalled_fraction": float((result.C.diff() == 0).double().mean()),
+        "c_fast_fraction": movement.fast_fraction,
         "sec_per_video_frame": seconds / n,
         "sec_stage1": result.timings["stage1"],
         "sec_stages23": result.timings["stages23"],

@@ -259,7 +259,7 @@ def _write_outputs(
 ):
     rate = video.features.frame_rate
     rig = video.features.cameras
-    angles = joint_angles(reg, reference, rate)
+    angles = joint_angles(reg, reference, rate, video.start, video.step)
     seen = points_in_view(rig, student_kinematics(reg, reference).positions)
     trusted = joints_trusted(angles, reference, seen) & (reg.fit >= TRUSTED_FIT)[:, None]
     movement = check_movement(
@@ -278,8 +278,8 @@ def _write_outputs(
     poses = body_poses(reg, reference)
     described = dict(OUTPUT_FILES)
     captions = [
-        (f"student {t / rate:.2f} s", f"reference {int(c) / reference.frame_rate:.2f} s")
-        for t, c in enumerate(reg.C.tolist())
+        (f"student {t:.2f} s", f"reference {int(c) / reference.frame_rate:.2f} s")
+        for t, c in zip(angles.time_s.tolist(), reg.C.tolist(), strict=True)
     ]
     for c, name in enumerate(rig.names):
         path = stage / f"overlay_{name}.mp4"
@@ -391,8 +391,9 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
     lines = [
         f"registered {s.num_video_frames} video frames against {Path(s.reference).name} "
         f"({sum(reg.timings.values()):.0f} s)",
-        f"  time offset {s.time_offset_s:.2f} s, speed ratio {s.speed_ratio:.2f} "
-        "(reference seconds per video second)",
+        f"  starts at {s.reference_start_s:.2f} s of the reference (video {s.video_start_s:.2f}"
+        f" s, frame {s.video_frames[0]}); speed ratio {s.speed_ratio:.2f} (reference seconds "
+        "per video second)",
         f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; body size G {s.G:.3f}",
     ]
     reasons = s.movement.get("reasons", [])  # first among the warnings

@@ -231,13 +231,17 @@ class JointAngles:
     Attributes:
         joints: ``J'`` joint names (the BVH's): those whose flexion is defined on the
             reference (:func:`joint_flexion`).
-        time_s: ``(T',)`` float64 video time of each frame, seconds.
+        time_s: ``(T',)`` float64 time of each frame in the source video, seconds (the
+            video's clock: its first registered frame ``first_frame`` is at
+            ``first_frame / source rate``).
         reference_deg: ``(T', J')`` float64 the reference's flexion at C(t'), degrees.
         student_deg: ``(T', J')`` float64 the student's flexion, degrees.
         difference_deg: ``(T', J')`` float64 ``student - reference`` (positive: the student
             bends more), degrees.
         articulation_deg: ``(T', J')`` float64 the rotation angle of A at the joint
             (:attr:`Registration.a_degrees`, twist included), degrees.
+        first_frame, frame_step: frame ``t'`` is frame ``first_frame + t' frame_step`` of
+            the source video (0-based).
     """
 
     joints: list[str]
@@ -246,10 +250,17 @@ class JointAngles:
     student_deg: Tensor
     difference_deg: Tensor
     articulation_deg: Tensor
+    first_frame: int = 0
+    frame_step: int = 1
 
     @property
     def num_frames(self) -> int:
         return int(self.time_s.shape[0])
+
+    @property
+    def video_frames(self) -> list[int]:
+        """The source video's frame number of each frame."""
+        return [self.first_frame + t * self.frame_step for t in range(self.num_frames)]
 
 
 def _check_registration(reg: Registration, reference: Reference) -> None:
@@ -295,7 +306,13 @@ def joints_trusted(angles: JointAngles, reference: Reference, seen: Tensor) -> T
     return torch.stack(out, 1)
 
 
-def joint_angles(reg: Registration, reference: Reference, frame_rate: float) -> JointAngles:
+def joint_angles(
+    reg: Registration,
+    reference: Reference,
+    frame_rate: float,
+    first_frame: int = 0,
+    frame_step: int = 1,
+) -> JointAngles:
     """Flexion of the reference at C(t') and of the student, per joint and video frame.
 
     The reference's posture is :meth:`Reference.body_frames` at ``reg.C``; the student's is
@@ -305,7 +322,9 @@ def joint_angles(reg: Registration, reference: Reference, frame_rate: float) -> 
     Args:
         reg: the registration (``T'`` frames).
         reference: the reference it was registered against.
-        frame_rate: the video's frames per second (for :attr:`JointAngles.time_s`).
+        frame_rate: the registered frames' rate (the source video's over ``frame_step``).
+        first_frame, frame_step: where the registered frames lie in the source video (its
+            ``video.start`` and ``video.step``): times are on the source video's clock.
 
     Returns:
         :class:`JointAngles` for the joints whose flexion is defined on the reference and
@@ -315,6 +334,10 @@ def joint_angles(reg: Registration, reference: Reference, frame_rate: float) -> 
     """
     _check_registration(reg, reference)
     frame_rate = _check_rate(frame_rate)
+    if first_frame < 0 or frame_step < 1:
+        raise RegistrationError(
+            f"expected first_frame >= 0 and frame_step >= 1; got {first_frame}, {frame_step}"
+        )
     skel = reference.skeleton
     g = float(reg.G)
     ref_fk = reference.body_frames(reg.C)
@@ -328,11 +351,13 @@ def joint_angles(reg: Registration, reference: Reference, frame_rate: float) -> 
     ref, stu = ref[:, keep], stu[:, keep]
     return JointAngles(
         joints=[skel.names[i] for i in keep.tolist()],
-        time_s=torch.arange(reg.num_frames, dtype=F64) / frame_rate,
+        time_s=(first_frame / frame_step + torch.arange(reg.num_frames, dtype=F64)) / frame_rate,
         reference_deg=ref,
         student_deg=stu,
         difference_deg=stu - ref,
         articulation_deg=reg.a_degrees.to(F64)[:, keep],
+        first_frame=first_frame,
+        frame_step=frame_step,
     )
 
 
@@ -491,7 +516,8 @@ def _num(x: float) -> str:
 
 def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
     """Write :class:`JointAngles` as CSV, long format: one row per frame and joint, columns
-    ``frame`` (video frame index), ``time_s``, ``joint``, ``reference_deg``,
+    ``frame`` (the source video's frame number), ``time_s`` (its clock), ``joint``,
+    ``reference_deg``,
     ``student_deg``, ``difference_deg``, ``articulation_deg`` (10 significant digits; NaN
     written as ``nan``). Returns the path."""
     path = Path(path)
@@ -515,9 +541,10 @@ def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
                 "articulation_deg",
             ]
         )
-        for t, (time_s, row) in enumerate(zip(angles.time_s.tolist(), values, strict=True)):
+        rows = zip(angles.video_frames, angles.time_s.tolist(), values, strict=True)
+        for frame, time_s, row in rows:
             for joint, v in zip(angles.joints, row, strict=True):
-                writer.writerow([t, _num(time_s), joint, *(_num(x) for x in v)])
+                writer.writerow([frame, _num(time_s), joint, *(_num(x) for x in v)])
     return path
 
 
@@ -802,10 +829,16 @@ class RegistrationSummary:
         video_rate_hz: the video's frame rate.
         c_frames: ``T'`` reference frame C(t') of each video frame.
         c_stage1_frames: ``T'`` C after stage 1.
-        time_offset_s: reference time at the first video frame, seconds, from the
-            least-squares line ``C(t') ~ a + b t'``: ``a / reference_rate_hz``.
-        speed_ratio: reference seconds per video second, ``b * video_rate_hz /
-            reference_rate_hz`` (``None`` with one frame).
+        video_frames: ``T'`` the source video's frame number of each frame (``video.start``
+            and ``video.step`` applied): every time and frame a user sees is on the source
+            video's clock.
+        video_start_s: the source video's time of the first registered frame, seconds.
+        reference_start_s: where the student starts in the reference: the reference's
+            time ``C(0) / reference_rate_hz`` matching the first registered frame, seconds
+            (the report's "Starts at"; the one quantity of that name).
+        speed_ratio: reference seconds per video second: the least-squares slope ``b`` of
+            ``C(t') ~ a + b t'`` times ``video_rate_hz / reference_rate_hz`` (``None`` with
+            one frame).
         G: body scale.
         silhouette_iou_mean: mean of :attr:`fit` (``None`` when it has no finite value).
         fit: ``T'`` per-frame silhouette IoU.
@@ -831,7 +864,9 @@ class RegistrationSummary:
     video_rate_hz: float
     c_frames: list[int]
     c_stage1_frames: list[int]
-    time_offset_s: float
+    video_frames: list[int]
+    video_start_s: float
+    reference_start_s: float
     speed_ratio: float | None
     G: float
     silhouette_iou_mean: float | None
@@ -905,10 +940,10 @@ def summarise(
     c = reg.C.to(torch.long).tolist()
     frames = np.arange(len(c), dtype=np.float64)
     if len(c) >= 2:
-        b, a = np.polyfit(frames, np.asarray(c, dtype=np.float64), 1)
+        b = np.polyfit(frames, np.asarray(c, dtype=np.float64), 1)[0]
         speed = float(b) * frame_rate / reference.frame_rate
     else:
-        a, speed = float(c[0]), None
+        speed = None
     fit = [float(x) for x in reg.fit.to(F64).tolist()]
     finite = [x for x in fit if math.isfinite(x)]
     return RegistrationSummary(
@@ -918,7 +953,9 @@ def summarise(
         video_rate_hz=frame_rate,
         c_frames=c,
         c_stage1_frames=reg.C_stage1.to(torch.long).tolist(),
-        time_offset_s=float(a) / reference.frame_rate,
+        video_frames=angles.video_frames,
+        video_start_s=float(angles.time_s[0]),
+        reference_start_s=c[0] / reference.frame_rate,
         speed_ratio=speed,
         G=float(reg.G),
         silhouette_iou_mean=sum(finite) / len(finite) if finite else None,

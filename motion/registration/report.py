@@ -124,8 +124,8 @@ def _shade_untrusted(ax, time: np.ndarray, trusted: np.ndarray) -> None:
 
 
 def correspondence_figure(inputs: ReportInputs) -> str:
-    """C as reference time against video time, stage 1's and the straight line of the
-    summary's offset and speed ratio beside it."""
+    """C as reference time against the source video's time, stage 1's and the
+    least-squares straight line (the summary's speed ratio) beside it."""
     s, reg = inputs.summary, inputs.registration
     time = _video_time(inputs)
     rate = s.reference_rate_hz
@@ -133,9 +133,10 @@ def correspondence_figure(inputs: ReportInputs) -> str:
     _shade_untrusted(ax, time, inputs.registration.fit.numpy() >= FIT_FAIR)
     ax.plot(time, reg.C_stage1.numpy() / rate, ":", color="0.5", label="first pass (stage 1)")
     ax.plot(time, reg.C.numpy() / rate, "-", color="C0", lw=2, label="registered")
+    line = np.polyval(np.polyfit(time, reg.C.numpy() / rate, 1), time) if len(time) > 1 else None
     ax.plot(
         time,
-        s.time_offset_s + s.speed_ratio * time,
+        reg.C.numpy() / rate if line is None else line,
         "--",
         color="C3",
         lw=1,
@@ -287,7 +288,9 @@ def render_report(inputs: ReportInputs) -> str:
         s=s,
         reference_name=Path(s.reference).name,
         duration=f"{s.num_video_frames / s.video_rate_hz:.2f}",
-        start_s=f"{s.c_frames[0] / s.reference_rate_hz:.2f}",
+        start_s=f"{s.reference_start_s:.2f}",
+        video_start=f"{s.video_start_s:.2f}",
+        first_frame=s.video_frames[0],
         size_measured=not s.notes.get("G", "").startswith(SCALE_NOT_ESTIMATED),
         size_note=s.notes.get("G", ""),
         speed_words=_speed_words(s.speed_ratio),

@@ -91,7 +91,7 @@ def test_printed_summary_names_the_report(register_run, summary):
     out = register_run.stdout
     assert f"report {register_run.out / 'report.html'}" in out
     assert f"registered {summary['num_video_frames']} video frames against" in out
-    assert "speed ratio" in out and "time offset" in out
+    assert "speed ratio" in out and "starts at" in out and "time offset" not in out
 
 
 def test_summary_json(summary, video_frames):
@@ -115,7 +115,11 @@ def test_summary_json(summary, video_frames):
     assert movement["reference_travel_m"] > 0.5 and movement["reasons"] == []
     assert 0.5 <= movement["student_travel_m"] / movement["reference_travel_m"] <= 2
     assert all(d["stated"] is True and d["why"] == "" for d in summary["largest_differences"])
-    assert math.isfinite(summary["time_offset_s"])
+    # one clock: frames from the start of the video (no video.start here), one "starts at"
+    assert summary["video_frames"] == list(range(video_frames))
+    assert summary["video_start_s"] == 0.0
+    assert summary["reference_start_s"] == summary["c_frames"][0] / summary["reference_rate_hz"]
+    assert "time_offset_s" not in summary
     assert math.isfinite(summary["speed_ratio"]) and summary["speed_ratio"] > 0
     # the settings of the run, as given on the command line
     settings = summary["settings"]
@@ -229,6 +233,35 @@ def test_a_report_without_a_trusted_frame_says_so(register_run, tmp_path, monkey
     assert "No frame fits well enough to read joint differences from" in text
     assert "No joint differs from the reference" not in text
     assert json.loads((out / "summary.json").read_text())["largest_differences"] == []
+
+
+def test_every_time_is_on_the_source_videos_clock(register_run, tmp_path, capsys):
+    """video.start=4, video.step=2 at 12 fps: frame t' is source frame 4 + 2 t' at
+    (4 + 2 t') / 12 s in summary.json, the CSV, the .mot, the findings, the printed summary
+    and the report's "Starts at" card."""
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(register_argv(register_run.student, out, "video.start=4", "video.step=2")) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    n = summary["num_video_frames"]
+    frames = [4 + 2 * t for t in range(n)]
+    assert summary["video_frames"] == frames and summary["video_rate_hz"] == pytest.approx(6.0)
+    assert summary["video_start_s"] == pytest.approx(4 / 12)
+    with (out / "joint_angles.csv").open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted({int(r["frame"]) for r in rows}) == frames
+    for r in rows:
+        assert float(r["time_s"]) == pytest.approx(int(r["frame"]) / 12, abs=1e-9)
+    mot = (out / "joint_angles.mot").read_text().splitlines()
+    body = mot[mot.index("endheader") + 2 :]
+    assert [float(line.split("\t")[0]) for line in body] == pytest.approx([f / 12 for f in frames])
+    for d in summary["largest_differences"]:
+        assert 4 / 12 - 1e-9 <= d["start_s"] <= d["end_s"] <= frames[-1] / 12 + 1e-9
+    start = summary["reference_start_s"]
+    assert f"starts at {start:.2f} s of the reference (video 0.33 s, frame 4)" in printed
+    text = (out / "report.html").read_text(encoding="utf-8")
+    assert f"{start:.2f} s</div>" in text and "video at 0.33 s" in text and "(frame 4)" in text
 
 
 @requires_shared_data()

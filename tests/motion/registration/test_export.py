@@ -336,6 +336,22 @@ def test_joint_angles_csv_reads_back(tmp_path, reference):
             assert float(row[column]) == pytest.approx(want, rel=1e-9, abs=1e-9), column
 
 
+def test_joint_angles_are_on_the_source_videos_clock(tmp_path, reference):
+    """Frames 10, 13, 16, ... of a 30 fps video (step 3: 10 Hz): times (10 + 3 t') / 30 s,
+    frame numbers in the CSV; the angles themselves do not depend on the clock."""
+    reg = make_registration(reference, num_frames=5)
+    angles = joint_angles(reg, reference, 10.0, first_frame=10, frame_step=3)
+    frames = [10 + 3 * t for t in range(5)]
+    assert angles.video_frames == frames
+    torch.testing.assert_close(angles.time_s, torch.tensor(frames, dtype=F64) / 30.0)
+    plain = joint_angles(reg, reference, 10.0)
+    torch.testing.assert_close(angles.difference_deg, plain.difference_deg, rtol=0, atol=0)
+    with write_joint_angles_csv(angles, tmp_path / "a.csv").open(newline="") as f:
+        assert sorted({int(r["frame"]) for r in csv.DictReader(f)}) == frames
+    with pytest.raises(RegistrationError, match="first_frame >= 0 and frame_step >= 1"):
+        joint_angles(reg, reference, 10.0, first_frame=-1)
+
+
 def test_mot_reads_back(tmp_path):
     angles = hand_angles()
     path = write_mot(angles, tmp_path / "student.mot")
@@ -533,7 +549,8 @@ def test_summary_speed_offset_and_json(reference):
     summary = summarise(reg, reference, angles, 30.0, settings)
     rate = reference.frame_rate  # 1 / 0.0083333 s
     assert summary.speed_ratio == pytest.approx(3 * 30.0 / rate, rel=1e-12)
-    assert summary.time_offset_s == pytest.approx(5 / rate, rel=1e-9)
+    assert summary.reference_start_s == pytest.approx(5 / rate, rel=1e-12)
+    assert summary.video_frames == list(range(t)) and summary.video_start_s == 0.0
     assert summary.c_frames == reg.C.tolist()
     assert summary.num_video_frames == t and summary.video_rate_hz == 30.0
     assert summary.reference == str(WALK) and summary.reference_rate_hz == rate
