@@ -9,7 +9,8 @@ A config file names its experiment and sets that experiment's fields::
       - {corrupt: false}
       - {corrupt: true}
 
-Every experiment accepts ``seed``, ``out_dir`` and ``tiny`` (a few frames, for tests). A schema
+Every experiment accepts ``seed``, ``out_dir`` and ``tiny`` (a few frames, for tests; a sweep's
+entries are all checked but only its first and last run). A schema
 is a dataclass deriving from :class:`ExperimentConfig` whose fields declare their type, range
 and meaning in one place (:func:`motion.settings.setting`). Files are read strictly: YAML 1.2
 scalars (only ``true``/``false`` are booleans, ``1e3`` is a number), no duplicate keys, every
@@ -321,4 +322,6 @@ def load_config(
                 f"{at}: sweep[{i}] repeats sweep[{labels[label]}] ({label}); expected each run once"
             )
         labels[label] = i
+    if config.tiny and len(sweep) > 2:  # every entry checked above; the first and last run
+        sweep = [sweep[0], sweep[-1]]
     return name, config, [dict(entry) for entry in sweep]

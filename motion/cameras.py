@@ -25,6 +25,7 @@ __all__ = [
     "decompose_projection",
     "dlt",
     "load_pose2sim_calibration",
+    "resized_rig",
     "save_pose2sim_calibration",
 ]
 
@@ -107,6 +108,31 @@ class CameraRig:
         """Distortion-free cameras from ``(C, 3, 4)`` projection matrices."""
         k, r, t = decompose_projection(P)
         return cls(k, r, t, torch.zeros(P.shape[0], 5, dtype=P.dtype), size, names)
+
+
+def resized_rig(
+    rig: CameraRig,
+    native: list[tuple[int, int]],
+    scaled: list[tuple[int, int]],
+    size: tuple[int, int] | None = None,
+) -> CameraRig:
+    """The rig seeing the same scene in resized images: camera ``c``'s frames go from
+    ``native[c]`` to ``scaled[c]`` pixels (width, height). Per axis, the exact resize factor
+    ``s``: ``K`` row 0 times ``s_x`` then ``c_x -> (c_x + 0.5) s_x - 0.5`` (pixel centres,
+    as ``cv2.resize`` samples them), row 1 likewise. The image size becomes ``size`` for
+    every camera (a padded working size), or each camera's ``scaled`` size; R, t and the
+    distortion are unchanged."""
+    k = rig.K.clone().to(torch.float64)
+    for c, ((w0, h0), (w1, h1)) in enumerate(zip(native, scaled, strict=True)):
+        sx, sy = w1 / w0, h1 / h0
+        k[c, 0] *= sx
+        k[c, 1] *= sy
+        k[c, 0, 2] += 0.5 * sx - 0.5
+        k[c, 1, 2] += 0.5 * sy - 0.5
+        k[c, 2] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    dtype = rig.K.dtype
+    sizes = [list(size)] * rig.num_cameras if size is not None else [list(s) for s in scaled]
+    return dataclasses.replace(rig, K=k.to(dtype), size=torch.tensor(sizes, dtype=dtype))
 
 
 def _describe(value) -> str:

@@ -5,7 +5,8 @@ Images are ``(H, W, 3)`` uint8 RGB; points are pixels ``(u, v)``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import itertools
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import cv2
@@ -90,20 +91,22 @@ def contact_sheet(
     return sheet
 
 
-def write_video(path: str | Path, frames: Sequence[np.ndarray] | np.ndarray, fps: float) -> Path:
-    """Write RGB frames to a video file (mp4v for .mp4, MJPG for .avi). Raises ``OSError``
-    if OpenCV cannot open the writer."""
+def write_video(path: str | Path, frames: Iterable[np.ndarray] | np.ndarray, fps: float) -> Path:
+    """Write RGB frames to a video file (mp4v for .mp4, MJPG for .avi), consuming ``frames``
+    one at a time (a generator is never held in memory whole). Raises ``ValueError`` for no
+    frames and ``OSError`` if OpenCV cannot open the writer."""
     path = Path(path)
-    frames = list(frames)
-    if not frames:
+    stream = iter(frames)
+    first = next(stream, None)
+    if first is None:
         raise ValueError("write_video needs at least one frame")
-    h, w = frames[0].shape[:2]
+    h, w = first.shape[:2]
     codec = "MJPG" if path.suffix.lower() == ".avi" else "mp4v"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*codec), fps, (w, h))
     if not writer.isOpened():
         raise OSError(f"{path}: OpenCV cannot write this video ({codec})")
     try:
-        for f in frames:
+        for f in itertools.chain([first], stream):
             writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
     finally:
         writer.release()

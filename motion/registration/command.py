@@ -54,6 +54,10 @@ from motion.registration.video import VideoInput, VideoSettings, features_from_v
 
 __all__ = ["OUTPUT_FILES", "RegisterJob", "RegisterOutcome", "run_register", "summary_lines"]
 
+#: overlay videos are at least this many pixels high: working frames (often 240 px) are
+#: upscaled and the bodies drawn at that size, so a knee can be seen
+OVERLAY_MIN_HEIGHT = 720
+
 #: what each output file is, for the report and the summary
 OUTPUT_FILES = {
     "registration.npz": "C, T and A per video frame, fit, G (numpy arrays)",
@@ -283,17 +287,17 @@ def _write_outputs(
     ]
     for c, name in enumerate(rig.names):
         path = stage / f"overlay_{name}.mp4"
-        pictures = side_by_side_frames(video.frames[c], rig, c, poses, captions)
-        frames = list(
-            tqdm(
-                pictures,
-                desc=f"overlay {name}",
-                total=reg.num_frames,
-                disable=not show,
-                file=sys.stderr,
-            )
+        pictures = side_by_side_frames(
+            video.frames[c], rig, c, poses, captions, min_height=OVERLAY_MIN_HEIGHT
         )
-        files[path.name] = write_video(path, frames, rate)
+        shown = tqdm(
+            pictures,
+            desc=f"overlay {name}",
+            total=reg.num_frames,
+            disable=not show,
+            file=sys.stderr,
+        )
+        files[path.name] = write_video(path, shown, rate)
         described[path.name] = (
             f"camera {name}: the registered body over the video, the reference beside it"
         )

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from motion.body.observation import PartShapes
-from motion.cameras import CameraRig
+from motion.cameras import CameraRig, resized_rig
 from motion.draw import PART_COLOURS
 from motion.registration.refine import place_poses
 from motion.registration.types import Reference, Registration, scaled_spec
@@ -205,18 +205,29 @@ def side_by_side_frames(
     frame_ids: list[int] | None = None,
     with_video: bool = False,
     zoom: int | None = None,
+    min_height: int | None = None,
 ) -> Iterator[np.ndarray]:
     """:func:`side_by_side` for video frames ``frame_ids`` (default all) of camera
-    ``index``: ``frames`` ``(T', H, W, 3)`` uint8 at the rig's resolution. Rendered in
-    batches of :data:`RENDER_BATCH` frames; yields one picture per frame."""
+    ``index``: ``frames`` ``(T', H, W, 3)`` uint8 at the rig's resolution. With
+    ``min_height`` above ``H``, each frame is first upscaled to ``min_height`` pixels high
+    and the bodies are drawn at that size (through the resized camera, so their outlines
+    are sharp, not magnified pixels). Rendered in batches of :data:`RENDER_BATCH` frames;
+    yields one picture per frame."""
     one = camera(rig, index)
     h, w = frames.shape[1:3]
+    size = (w, h)
+    if min_height is not None and min_height > h:
+        size = (max(1, round(w * min_height / h)), min_height)
+        one = resized_rig(one, [(w, h)], [size])
     ids = list(range(len(frames))) if frame_ids is None else list(frame_ids)
     student, reference = poses.segments("student"), poses.segments("reference")
     for start in range(0, len(ids), RENDER_BATCH):
         batch = torch.as_tensor(ids[start : start + RENDER_BATCH])
-        s_lab = _labels(one, student[batch], poses.radii, h, w).numpy()
-        r_lab = _labels(one, reference[batch], poses.radii, h, w).numpy()
+        s_lab = _labels(one, student[batch], poses.radii, size[1], size[0]).numpy()
+        r_lab = _labels(one, reference[batch], poses.radii, size[1], size[0]).numpy()
         for k, t in enumerate(batch.tolist()):
             text = None if captions is None else captions[start + k]
-            yield side_by_side(frames[t], s_lab[k], r_lab[k], text, with_video, zoom)
+            frame = frames[t]
+            if size != (w, h):
+                frame = cv2.resize(frame, size, interpolation=cv2.INTER_CUBIC)
+            yield side_by_side(frame, s_lab[k], r_lab[k], text, with_video, zoom)

@@ -50,6 +50,9 @@ KEY_FRAMES = 4
 KEY_FRAME_GAP_S = 0.25
 #: pixels of height of each key-frame panel (cropped around the person)
 KEY_FRAME_HEIGHT = 300
+#: key frames are drawn on the video upscaled to this height before the crop, so a person
+#: filling half the frame is drawn at about the panel's size, not magnified from a small one
+KEY_FRAME_DRAW_HEIGHT = 2 * KEY_FRAME_HEIGHT
 #: joints drawn in the heat map (the largest mean differences; all if fewer)
 HEATMAP_JOINTS = 16
 
@@ -244,6 +247,7 @@ def _key_frame_pictures(inputs: ReportInputs, frames: list[KeyFrame]) -> list[di
             captions=[("video", "registered student", "reference")] * len(ids),
             with_video=True,
             zoom=KEY_FRAME_HEIGHT,
+            min_height=KEY_FRAME_DRAW_HEIGHT,
         )
     )
     out = []

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from motion.body.observation import Observation
-from motion.cameras import CameraRig
+from motion.cameras import CameraRig, resized_rig
 from motion.features import (
     VideoError,
     distance_to_edges,
@@ -363,25 +363,6 @@ def _check_cameras(paths: list[Path], cameras: CameraRig | None) -> None:
         )
 
 
-def _scaled_rig(
-    rig: CameraRig, native: list[tuple[int, int]], scaled: list[tuple[int, int]], size
-) -> CameraRig:
-    """Intrinsics of the resized frames (per axis, the exact resize factor of each camera:
-    ``K`` row 0 times ``s_x``, then ``c_x -> (c_x + 0.5) s_x - 0.5``; row 1 likewise), the
-    image size the padded working size; R, t, distortion unchanged."""
-    k = rig.K.clone().to(torch.float64)
-    for c, ((w0, h0), (w1, h1)) in enumerate(zip(native, scaled, strict=True)):
-        sx, sy = w1 / w0, h1 / h0
-        k[c, 0] *= sx
-        k[c, 1] *= sy
-        k[c, 0, 2] += 0.5 * sx - 0.5
-        k[c, 1, 2] += 0.5 * sy - 0.5
-        k[c, 2] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    dtype = rig.K.dtype
-    sizes = torch.tensor([list(size)] * rig.num_cameras, dtype=dtype)
-    return dataclasses.replace(rig, K=k.to(dtype), size=sizes)
-
-
 def _pad(frames: np.ndarray, height: int, width: int) -> np.ndarray:
     """``(T, h, w, ...)`` -> ``(T, height, width, ...)`` on the right and bottom: images with
     their last row and column repeated (no edge at the seam), masks with False."""
@@ -647,7 +628,7 @@ def features_from_videos(
             "point at the centre, the camera at the world origin (y down); distances and "
             "body size scale with the true focal length"
         )
-    rig = _scaled_rig(rig, native, scaled, (width, height))
+    rig = resized_rig(rig, native, scaled, (width, height))
     starts = _person_points(settings, probes, scaled)
 
     sils, dists, frames = [], [], []

@@ -412,8 +412,11 @@ def test_help_is_plain_text_and_lists_the_experiments_and_their_fields(capsys):
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "``" not in text and ":class:" not in text and ":func:" not in text
-    for name, exp in EXPERIMENTS.items():
-        assert f"{name} (experiments/configs/{name}.yaml; schema {exp.schema.__name__}):" in text
+    headers = {line.split(" (")[0]: line for line in text.splitlines() if "; schema " in line}
+    for name, exp in EXPERIMENTS.items():  # each lists its configs, its own first by name
+        assert headers[name].endswith(f"; schema {exp.schema.__name__}):"), headers[name]
+        assert f"experiments/configs/{name}.yaml" in headers[name], headers[name]
+    assert "experiments/configs/register_movements.yaml" in headers["register_synthetic"]
     assert "static_camera, seed, out_dir, tiny, methods" in text
     assert main(["list"]) == 0
     listing = capsys.readouterr().out
@@ -548,3 +551,16 @@ def test_fuzzed_overrides_give_a_config_error_or_a_valid_config(key, text):
         assert "\n" not in str(err)
         return
     cfg.validate()
+
+
+def test_tiny_runs_a_sweeps_first_and_last_entries_after_checking_them_all(tmp_path):
+    """A long sweep stays a quick check under tiny: every entry is validated (a bad one in
+    the middle still fails) but only the first and last run."""
+    entries = "".join(f"  - {{seed: {s}}}\n" for s in range(5))
+    path = tmp_path / "sweep.yaml"
+    path.write_text(f"experiment: stick_time\nsweep:\n{entries}")
+    assert [e["seed"] for e in load_config(path, SCHEMAS, {"tiny": True})[2]] == [0, 4]
+    assert [e["seed"] for e in load_config(path, SCHEMAS)[2]] == [0, 1, 2, 3, 4]
+    path.write_text(f"experiment: stick_time\nsweep:\n{entries}  - {{fps: -1}}\n  - {{seed: 9}}\n")
+    with pytest.raises(ConfigError, match=r"sweep\[5\]"):
+        load_config(path, SCHEMAS, {"tiny": True})

@@ -74,10 +74,13 @@ def _has(keys, key) -> bool:
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
 def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
-    if path.stem in ("pose2sim_real", "register_real") and not SHARED_DATA.is_dir():
+    needs_shared = (
+        path.stem in ("pose2sim_real", "register_real") or "../shared" in path.read_text()
+    )
+    if needs_shared and not SHARED_DATA.is_dir():
         pytest.skip(f"needs the shared data folder at {SHARED_DATA}")
     metrics = run_config(path, {"tiny": True, "out_dir": str(tmp_path)})
-    name = path.stem
+    name = load_config(path, {k: v.schema for k, v in EXPERIMENTS.items()})[0]
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     timings_file = tmp_path / "timings.json"
     timings = json.loads(timings_file.read_text()) if timings_file.exists() else {}

@@ -182,6 +182,7 @@ def test_overlay_video_has_every_frame(register_run, video_frames):
     try:
         assert cap.isOpened()
         assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(12.0)
+        assert cap.get(cv2.CAP_PROP_FRAME_HEIGHT) >= command.OVERLAY_MIN_HEIGHT
     finally:
         cap.release()
     assert len(_frames(path)) == video_frames
