@@ -11,10 +11,13 @@
   TRC) against its 4 calibrated cameras. The reference *is* the trial, so the true C is
   the identity and the recovered joints can be compared with the triangulation:
   ``pose2sim_e3d_mean`` (mean joint distance over the joints at markers, fraction of the body
-  height), ``pose2sim_c_err_mean`` (frames), and the bend of knees and elbows against
-  the OpenSim angles shipped with the trial (``pose2sim_angle_err_deg_mean``; the
-  reference's own bend against OpenSim, ``pose2sim_reference_angle_err_deg_mean``, is the
-  floor a skeleton fitted to the markers allows).
+  height), ``pose2sim_c_err_mean`` (frames), and the student's clinical joint angles
+  (:mod:`motion.angles`) against the trial's own OpenSim inverse kinematics, RMSE per
+  coordinate (``pose2sim_rmse_deg_<coordinate>``, e.g. ``pose2sim_rmse_deg_knee_angle_r``;
+  ``pose2sim_rmse_deg_leg_flexion_mean`` over hip, knee and ankle flexion of both legs).
+  The reference's own angles against OpenSim (``pose2sim_reference_rmse_deg_...``) are the
+  floor a skeleton fitted to the markers allows: two models of one body, which place the
+  joint centres and the segments' neutral differently.
 
 Each case runs ``python -m motion register`` as a user would (:func:`motion.registration.
 command.run_register`), so ``out_dir/sports2d`` and ``out_dir/pose2sim`` hold its report,
@@ -34,12 +37,13 @@ import torch
 from experiments.config import ConfigError, ExperimentConfig, ExperimentSkipped
 from experiments.progress import note
 from experiments.stick_time import BUNDLED
+from motion.angles import ClinicalAngles, SegmentMap, clinical_angles
 from motion.bodyparts import load_spec
 from motion.cameras import load_pose2sim_calibration
 from motion.keypoints import read_trc
 from motion.registration import Reference, Registration
 from motion.registration.command import RegisterJob, run_register
-from motion.registration.export import joint_flexion, student_kinematics
+from motion.registration.export import student_kinematics
 from motion.registration.markers import MARKER_JOINTS, reference_from_markers
 from motion.settings import setting
 
@@ -57,13 +61,8 @@ POSE2SIM_MOT = Path(
 )
 #: the trial's OpenPose detections, one folder per camera
 POSE2SIM_KEYPOINTS = Path("keypoints/pose2sim_balancing_trial/pose2d_openpose_body25b")
-#: OpenSim coordinate -> the skeleton joint whose bend it is (knee flexion, elbow flexion)
-OPENSIM_BENDS = {
-    "knee_angle_r": "RightLeg",
-    "knee_angle_l": "LeftLeg",
-    "elbow_flex_r": "RightForeArm",
-    "elbow_flex_l": "LeftForeArm",
-}
+#: the sagittal leg coordinates whose mean RMSE against OpenSim is one figure
+LEG_FLEXION = [f"{c}_{s}" for s in ("r", "l") for c in ("hip_flexion", "knee_angle", "ankle_angle")]
 #: the TRC's axes (Y up) in the calibration's world (Z up)
 TRC_TO_WORLD = [2, 0, 1]
 
@@ -177,10 +176,26 @@ def _read_mot(path: Path) -> tuple[list[str], np.ndarray]:
     return names, rows
 
 
-def _bends(reference: Reference, positions: torch.Tensor, joints: list[str]) -> torch.Tensor:
-    """``(T', len(joints))`` bend angles (degrees) of the named joints."""
-    flex = joint_flexion(positions, reference.skeleton.parents)
-    return flex[:, [reference.skeleton.index(j) for j in joints]]
+def _clinical(reference: Reference, rotations: torch.Tensor) -> ClinicalAngles:
+    segments = SegmentMap.from_roles(reference.skeleton, reference.model.mapping)
+    return clinical_angles(reference.skeleton, rotations, segments)
+
+
+def _rmse_against_opensim(
+    angles: ClinicalAngles, names: list[str], rows: np.ndarray, prefix: str
+) -> dict[str, float]:
+    """RMSE (degrees) per coordinate both give, over the frames both have, and the mean
+    over :data:`LEG_FLEXION`."""
+    n = min(len(rows), angles.degrees.shape[0])
+    out = {}
+    for coordinate in angles.names:
+        if coordinate in names:
+            gap = angles[coordinate][:n].numpy() - rows[:n, names.index(coordinate)]
+            out[f"{prefix}_{coordinate}"] = float(np.sqrt(np.nanmean(gap**2)))
+    legs = [out[f"{prefix}_{c}"] for c in LEG_FLEXION if f"{prefix}_{c}" in out]
+    if legs:
+        out[f"{prefix}_leg_flexion_mean"] = float(np.mean(legs))
+    return out
 
 
 def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
@@ -219,22 +234,18 @@ def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
     e3d = dist.mean(-1) / height
 
     names, rows = _read_mot(root / POSE2SIM_MOT)
-    coords = [c for c in OPENSIM_BENDS if c in names]
-    opensim = np.abs(rows[:n, [names.index(c) for c in coords]])
-    joints = [OPENSIM_BENDS[c] for c in coords]
-    student = _bends(reference, fk.positions, joints).numpy()
-    ref_fk = reference.body_frames(torch.arange(n))
-    own = _bends(reference, ref_fk.positions, joints).numpy()
+    student = _clinical(reference, result.rotations)
+    own = _clinical(reference, reference.rotations[:n])
     metrics = {
         "pose2sim_silhouette_iou_mean": float(result.fit.mean()),
         "pose2sim_e3d_mean": float(e3d.mean()),
         "pose2sim_c_err_mean": float((result.C[:n] - torch.arange(n)).abs().double().mean()),
-        "pose2sim_angle_err_deg_mean": float(np.nanmean(np.abs(student - opensim))),
-        "pose2sim_reference_angle_err_deg_mean": float(np.nanmean(np.abs(own - opensim))),
+        **_rmse_against_opensim(student, names, rows, "pose2sim_rmse_deg"),
+        **_rmse_against_opensim(own, names, rows, "pose2sim_reference_rmse_deg"),
         "pose2sim_G": float(result.G),
         "pose2sim_sec": seconds,
     }
-    note(f"pose2sim: joints compared with markers: {len(pairs)}; bends with OpenSim: {joints}")
+    note(f"pose2sim: joints compared with markers: {len(pairs)}")
     return metrics, {
         "pose2sim_iou": result.fit.numpy(),
         "pose2sim_e3d": e3d.numpy(),

@@ -16,7 +16,13 @@ drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of 
 ``silhouette_iou_mean``; ``motions_match`` (1: :func:`motion.registration.movement.
 check_movement` finds the reference's movement, as ``motion register`` reports it) with its
 evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``; ``a_swing_err_deg_mean`` is the articulation error without the
-twist about each bone (what a capsule body can show); ``sec_per_video_frame`` and per stage in timings.json.
+twist about each bone (what a capsule body can show); ``findings_stated`` (how many of the
+summary's largest differences ``motion register`` would state), ``findings_agree_fraction``
+(of those, the share that agree with the truth in sign and within
+:data:`FINDING_AGREE_DEG`: the true difference of clinical angles, :mod:`motion.angles`, over
+the finding's frames, the student's true angle minus the reference's at the true C; NaN when
+none is stated) and ``findings_withheld_fraction`` (of the largest differences, the share not
+stated); ``sec_per_video_frame`` and per stage in timings.json.
 """
 
 from __future__ import annotations
@@ -34,9 +40,11 @@ from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note, progress
 from experiments.stick_time import BUNDLED
 from motion.alignment import chain_align
+from motion.angles import COORDINATES, ClinicalAngles, SegmentMap, clinical_angles
 from motion.kinematics import euler_to_matrix, forward_kinematics
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
+from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import check_movement
 from motion.registration.refine import RefineSettings
@@ -44,6 +52,9 @@ from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
 
 TIMINGS = ("sec_per_video_frame", "sec_stage1", "sec_stages23")
+#: a stated finding agrees with the truth when its sign is the true one and it is within this
+#: many degrees of the true mean difference over its frames (the issue's criterion)
+FINDING_AGREE_DEG = 5.0
 
 
 @dataclass
@@ -229,6 +240,21 @@ def run(cfg: RegisterSyntheticConfig):
         video.frame_rate,
         result.G,
     )
+    angles = joint_angles(result, reference, video.frame_rate)
+    summary = summarise(
+        result,
+        reference,
+        angles,
+        video.frame_rate,
+        {},
+        trusted=result.fit >= TRUSTED_FIT,
+        movement=movement,
+    )
+    truth_diff = true_differences(reference, student, truth)
+    keep = [COORDINATES.index(c) for c in angles.coordinates]
+    findings = finding_agreement(
+        summary.largest_differences, angles.time_s, truth_diff[:, keep], angles.coordinates
+    )
     c_err = (result.C - truth.C).abs().double()
     c_err1 = (result.C_stage1 - truth.C).abs().double()
     metrics = {
@@ -245,6 +271,7 @@ def run(cfg: RegisterSyntheticConfig):
         "travel_ratio": movement.student_travel_m / max(movement.reference_travel_m, 1e-9),
         "c_stalled_fraction": float((result.C.diff() == 0).double().mean()),
         "c_fast_fraction": movement.fast_fraction,
+        **findings,
         "sec_per_video_frame": seconds / n,
         "sec_stage1": result.timings["stage1"],
         "sec_stages23": result.timings["stages23"],
@@ -262,6 +289,50 @@ def run(cfg: RegisterSyntheticConfig):
     joint_names = [reference.skeleton.names[j] for j in driven]
     data = {"columns": columns, "joints": joint_names, "joint_err": a_err.mean(0).numpy()}
     return metrics, columns, data
+
+
+def _clinical(body: Reference, rotations: Tensor) -> ClinicalAngles:
+    segments = SegmentMap.from_roles(body.skeleton, body.model.mapping)
+    return clinical_angles(body.skeleton, rotations, segments)
+
+
+def true_differences(reference: Reference, student: Reference | None, truth: Truth) -> Tensor:
+    """``(T', K)`` degrees: per video frame and coordinate of :data:`motion.angles.
+    COORDINATES`, the student's true clinical angle (on its own skeleton) minus the
+    reference's at the true C, wrapped to [-180, 180)."""
+    mine = _clinical(student or reference, truth.local).degrees
+    theirs = _clinical(reference, reference.rotations[truth.C]).degrees
+    return torch.remainder(mine - theirs + 180.0, 360.0) - 180.0
+
+
+def finding_agreement(
+    findings: list[dict], time_s: Tensor, truth: Tensor, names: list[str]
+) -> dict[str, float]:
+    """Score the findings of a summary (:attr:`RegistrationSummary.largest_differences`)
+    against true differences ``truth`` ``(T', K)`` (columns ``names``) at video times
+    ``time_s`` ``(T',)``: a stated finding agrees when the true mean difference over its
+    frames (``start_s`` to ``end_s``) has its sign and lies within
+    :data:`FINDING_AGREE_DEG` of it (a true difference of exactly 0, a joint the student
+    moves as the reference does, has no sign: any finding there disagrees).
+
+    Returns:
+        ``findings_stated``, ``findings_agree_fraction`` (NaN when none is stated) and
+        ``findings_withheld_fraction`` (NaN when there is no finding at all).
+    """
+    stated = [f for f in findings if f["stated"]]
+    agree = 0
+    for f in stated:
+        frames = (time_s >= f["start_s"] - 1e-9) & (time_s <= f["end_s"] + 1e-9)
+        true = float(truth[frames, names.index(f["coordinate"])].mean())
+        est = float(f["mean_difference_deg"])
+        agree += int(
+            np.sign(est) == np.sign(true) and abs(est - true) <= FINDING_AGREE_DEG
+        )
+    return {
+        "findings_stated": float(len(stated)),
+        "findings_agree_fraction": agree / len(stated) if stated else math.nan,
+        "findings_withheld_fraction": (1 - len(stated) / len(findings) if findings else math.nan),
+    }
 
 
 def _first(video, truth: Truth, n: int):

@@ -29,7 +29,17 @@ from torch import Tensor
 
 from motion.kinematics import Skeleton, forward_kinematics, matrix_to_euler
 
-__all__ = ["CMU_SEGMENTS", "COORDINATES", "ClinicalAngles", "SegmentMap", "clinical_angles"]
+__all__ = [
+    "CMU_SEGMENTS",
+    "COORDINATES",
+    "ClinicalAngles",
+    "CoordinateWords",
+    "SegmentMap",
+    "clinical_angles",
+    "coordinate_chain",
+    "coordinate_joints",
+    "describe_coordinate",
+]
 
 F64 = torch.float64
 
@@ -46,6 +56,50 @@ class SegmentMap:
     foot: tuple[str, str]
     upper_arm: tuple[str, str]
     forearm: tuple[str, str]
+
+    @classmethod
+    def from_roles(cls, skeleton: Skeleton, mapping: dict[str, list[str]]) -> SegmentMap:
+        """The segments of a skeleton whose joints are mapped to landmark roles
+        (:func:`motion.bodyparts.map_roles`, :attr:`motion.bodyparts.BodyModel.mapping`): a
+        limb segment turns with the joint at its proximal role (``hip_r`` the thigh,
+        ``knee_r`` the shank, ``ankle_r`` the foot, ``shoulder_r`` the upper arm, ``elbow_r``
+        the forearm), the pelvis with ``hips``, the torso with the neck's parent joint (the
+        last spine joint, which carries the shoulders).
+
+        Raises:
+            ValueError: naming the role that is not one joint of ``skeleton``.
+        """
+
+        def joint(role: str) -> str:
+            points = mapping.get(role, [])
+            if len(points) != 1 or points[0] not in skeleton.names:
+                raise ValueError(
+                    f"clinical angles need role {role!r} mapped to one joint of the skeleton; "
+                    f"got {points or 'nothing'}"
+                )
+            return points[0]
+
+        def sides(role: str) -> tuple[str, str]:
+            return joint(f"{role}_r"), joint(f"{role}_l")
+
+        neck = skeleton.index(joint("neck"))
+        if int(skeleton.parents[neck]) < 0:
+            raise ValueError(f"the neck joint {skeleton.names[neck]!r} has no parent (the torso)")
+        return cls(
+            pelvis=joint("hips"),
+            torso=skeleton.names[int(skeleton.parents[neck])],
+            thigh=sides("hip"),
+            shank=sides("knee"),
+            foot=sides("ankle"),
+            upper_arm=sides("shoulder"),
+            forearm=sides("elbow"),
+        )
+
+    def joint(self, segment: str, side: int) -> str:
+        """The joint turning ``segment`` (a field name) on ``side`` (0 right, 1 left; the
+        midline segments ignore it)."""
+        value = getattr(self, segment)
+        return value if isinstance(value, str) else value[side]
 
 
 #: the CMU skeleton (cgspeed BVH conversions and the bundled walks)
@@ -94,6 +148,50 @@ _MIDLINE = [
 ]
 
 
+#: per coordinate (without its side): the joint a reader knows, the verb of the
+#: coordinate's positive sense (a finding reads "<joint> <verb> N degrees more/less") and
+#: the angle's name after the joint (for tables and plots)
+_WORDS = {
+    "hip_flexion": ("hip", "flexes", "flexion"),
+    "hip_adduction": ("hip", "adducts", "adduction"),
+    "hip_rotation": ("hip", "rotates inwards", "internal rotation"),
+    "knee_angle": ("knee", "flexes", "flexion"),
+    "ankle_angle": ("ankle", "dorsiflexes", "dorsiflexion"),
+    "arm_flex": ("shoulder", "flexes", "flexion"),
+    "arm_add": ("shoulder", "adducts", "adduction"),
+    "arm_rot": ("shoulder", "rotates inwards", "internal rotation"),
+    "elbow_flex": ("elbow", "flexes", "flexion"),
+    "lumbar_extension": ("lower back", "extends", "extension"),
+    "lumbar_bending": ("lower back", "bends to the right", "bending to the right"),
+    "lumbar_rotation": ("lower back", "turns to the left", "rotation to the left"),
+}
+
+
+@dataclass(frozen=True)
+class CoordinateWords:
+    """How a report names a coordinate: ``joint`` ("right knee"), ``verb`` of its positive
+    sense ("flexes") and ``label`` ("right knee flexion")."""
+
+    joint: str
+    verb: str
+    label: str
+
+
+def describe_coordinate(name: str) -> CoordinateWords:
+    """The words for a coordinate of :data:`COORDINATES`, e.g. ``knee_angle_r``: ("right
+    knee", "flexes", "right knee flexion"); an unknown name is its own joint and label,
+    with the verb "measures"."""
+    base, _, side = name.rpartition("_")
+    if side in ("r", "l") and base in _WORDS:
+        joint, verb, noun = _WORDS[base]
+        joint = f"{'right' if side == 'r' else 'left'} {joint}"
+    elif name in _WORDS:
+        joint, verb, noun = _WORDS[name]
+    else:
+        return CoordinateWords(name, "measures", name)
+    return CoordinateWords(joint, verb, f"{joint} {noun}")
+
+
 def _coordinates() -> list[_Coordinate]:
     out = [_Coordinate(*row) for row in _MIDLINE]
     for side in ("r", "l"):
@@ -108,6 +206,54 @@ def _coordinates() -> list[_Coordinate]:
 COORDINATES = [c.name for c in _coordinates()]
 
 
+def _coordinate(name: str) -> _Coordinate:
+    for c in _coordinates():
+        if c.name == name:
+            return c
+    raise ValueError(f"unknown coordinate {name!r}; expected one of {COORDINATES}")
+
+
+def _segment_joints(skeleton: Skeleton, name: str, segments: SegmentMap) -> tuple[int, int]:
+    """The skeleton indices of the joints turning a coordinate's parent and child segments."""
+    c = _coordinate(name)
+    side = 1 if name.endswith("_l") else 0
+    return skeleton.index(segments.joint(c.parent, side)), skeleton.index(
+        segments.joint(c.child, side)
+    )
+
+
+def coordinate_joints(
+    skeleton: Skeleton, name: str, segments: SegmentMap = CMU_SEGMENTS
+) -> list[int]:
+    """The joints a coordinate rests on: the joint of each of its two segments and that
+    joint's children (each segment's bones), as skeleton indices in skeleton order; a
+    coordinate is only as good as these joints are seen."""
+    ends = set(_segment_joints(skeleton, name, segments))
+    parents = skeleton.parents.tolist()
+    return sorted(ends | {k for k, p in enumerate(parents) if p in ends})
+
+
+def coordinate_chain(
+    skeleton: Skeleton, name: str, segments: SegmentMap = CMU_SEGMENTS
+) -> list[int]:
+    """The joints whose rotations change a coordinate: from its child segment's joint up
+    to, not including, its parent segment's joint (skeleton indices, child first).
+
+    Raises:
+        ValueError: when the child segment's joint is not below the parent's.
+    """
+    top, j = _segment_joints(skeleton, name, segments)
+    chain = []
+    while j >= 0 and j != top:
+        chain.append(j)
+        j = int(skeleton.parents[j])
+    if j != top:
+        raise ValueError(
+            f"{name}: joint {skeleton.names[chain[0]]!r} is not below {skeleton.names[top]!r}"
+        )
+    return chain
+
+
 @dataclass
 class ClinicalAngles:
     """Clinical joint angles of a motion.
@@ -115,10 +261,14 @@ class ClinicalAngles:
     Attributes:
         names: the coordinates (:data:`COORDINATES`), OpenSim's names.
         degrees: ``(..., K)`` one column per name, degrees.
+        joint_rotations: ``(..., K, 3, 3)`` per coordinate, its joint's rotation (the child
+            segment's anatomical frame in the parent's; the identity at neutral), the three
+            coordinates of one joint sharing it.
     """
 
     names: list[str]
     degrees: Tensor
+    joint_rotations: Tensor
 
     def __getitem__(self, name: str) -> Tensor:
         """``(...,)`` one coordinate's angles, degrees."""
@@ -196,19 +346,23 @@ def clinical_angles(
 
     def frame(field: str, side: int) -> Tensor:
         """(N, 3, 3) the segment's anatomical frame: R(t) M^T A, identity at neutral."""
-        joint = getattr(segments, field)
-        joint = joint if isinstance(joint, str) else joint[side]
+        joint = segments.joint(field, side)
         neutral = turned.get(joint, torch.eye(3, dtype=F64))
         return glob[:, skeleton.index(joint)] @ neutral.T @ axes
 
-    columns, cache = [], {}
+    columns, relatives, cache = [], [], {}
     for c in _coordinates():
         side = 1 if c.name.endswith("_l") else 0
         key = (c.parent, c.child, side)
         if key not in cache:
             relative = frame(c.parent, side).transpose(-1, -2) @ frame(c.child, side)
-            cache[key] = torch.rad2deg(matrix_to_euler(relative, "ZXY"))
+            cache[key] = relative, torch.rad2deg(matrix_to_euler(relative, "ZXY"))
+        relative, euler = cache[key]
         sign = -c.sign if (c.mirrored and side == 1) else c.sign
-        columns.append(sign * cache[key][:, c.axis])
-    degrees = torch.stack(columns, -1).reshape(*lead, len(columns))
-    return ClinicalAngles(list(COORDINATES), degrees)
+        columns.append(sign * euler[:, c.axis])
+        relatives.append(relative)
+    k = len(columns)
+    degrees = torch.stack(columns, -1).reshape(*lead, k)
+    return ClinicalAngles(
+        list(COORDINATES), degrees, torch.stack(relatives, 1).reshape(*lead, k, 3, 3)
+    )

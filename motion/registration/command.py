@@ -63,7 +63,7 @@ OUTPUT_FILES = {
     "registration.npz": "C, T and A per video frame, fit, G (numpy arrays)",
     "summary.json": "the numbers of the summary, per-joint differences, settings, timings",
     "student.bvh": "the recovered motion on the reference skeleton (any BVH viewer)",
-    "joint_angles.csv": "per frame and joint: reference, student and difference angles",
+    "joint_angles.csv": "per frame and clinical joint angle (OpenSim names): reference, student, difference",
     "joint_angles.mot": "the same as an OpenSim-style motion table",
     "report.html": "this report",
 }

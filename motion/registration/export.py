@@ -3,8 +3,10 @@
 From a :class:`~motion.registration.types.Registration` and its
 :class:`~motion.registration.types.Reference`:
 
-* :func:`joint_angles` -- per joint the flexion (bend) of the reference at C(t') and of the
-  student, their signed difference and the articulation angle of A (:class:`JointAngles`);
+* :func:`joint_angles` -- the clinical joint angles (:mod:`motion.angles`: OpenSim's
+  ``hip_flexion_r``, ``knee_angle_r``, ...) of the reference at C(t') and of the student,
+  their signed difference and the joint's whole change (:class:`JointAngles`);
+  :func:`joint_flexion` is the bend between two bones, for skeletons without segments;
   :func:`per_joint_mean_abs_deg` and :func:`largest_differences` (:class:`JointDifference`,
   with a sentence for reports); :func:`write_joint_angles_csv` and :func:`write_mot`
   (OpenSim storage) write them;
@@ -17,7 +19,7 @@ Conventions: metres and radians inside; degrees in the angle tables and BVH file
 format stores them), the BVH file's own length unit in BVH files; video time
 ``t' / frame_rate`` seconds. Euler angles follow :mod:`motion.kinematics`: channels
 ``Zrotation Yrotation Xrotation`` mean ``R = Rz(a) Ry(b) Rx(c)`` (intrinsic, channel order).
-Shapes: ``T'`` video frames, ``J`` skeleton joints, ``J'`` joints with a defined flexion.
+Shapes: ``T'`` video frames, ``J`` skeleton joints, ``K'`` coordinates the registration estimates.
 """
 
 from __future__ import annotations
@@ -33,13 +35,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from motion.angles import (
+    COORDINATES,
+    SegmentMap,
+    clinical_angles,
+    coordinate_chain,
+    coordinate_joints,
+    describe_coordinate,
+)
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.kinematics import FKResult, Skeleton, forward_kinematics
 from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
 
 __all__ = [
-    "CMU_JOINT_NAMES",
     "JointAngles",
     "JointDifference",
     "RegistrationSummary",
@@ -52,7 +61,6 @@ __all__ = [
     "load_registration",
     "matrix_to_bvh_euler",
     "per_joint_mean_abs_deg",
-    "readable_joint_name",
     "save_registration",
     "student_bvh",
     "student_kinematics",
@@ -72,44 +80,6 @@ TRUSTED_FIT = 0.5
 #: looked for (the posture estimate jitters from frame to frame by several degrees)
 SMOOTH_S = 0.2
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
-
-#: Readable names of the CMU (cgspeed) skeleton's joints, for reports. A BVH joint sits at the
-#: start of the bone it names: ``LeftLeg`` (the shin) is the knee, ``LeftArm`` the shoulder.
-CMU_JOINT_NAMES: dict[str, str] = {
-    "Hips": "pelvis",
-    "LowerBack": "lower back",
-    "Spine": "middle back",
-    "Spine1": "upper back",
-    "Neck": "base of the neck",
-    "Neck1": "neck",
-    "Head": "head",
-    **{
-        f"{side}{joint}": f"{side.lower()} {name}"
-        for side in ("Left", "Right")
-        for joint, name in (
-            ("UpLeg", "hip"),
-            ("Leg", "knee"),
-            ("Foot", "ankle"),
-            ("ToeBase", "toes"),
-            ("Shoulder", "collarbone"),
-            ("Arm", "shoulder"),
-            ("ForeArm", "elbow"),
-            ("Hand", "wrist"),
-            ("FingerBase", "knuckles"),
-            ("HandIndex1", "fingers"),
-        )
-    },
-    "LHipJoint": "left side of the pelvis",
-    "RHipJoint": "right side of the pelvis",
-    "LThumb": "left thumb",
-    "RThumb": "right thumb",
-}
-
-
-def readable_joint_name(name: str) -> str:
-    """The readable name of a joint (:data:`CMU_JOINT_NAMES`), else ``name`` itself."""
-    return CMU_JOINT_NAMES.get(name, name)
-
 
 # --------------------------------------------------------------------------- flexion
 
@@ -226,25 +196,28 @@ def joint_flexion(
 
 @dataclass
 class JointAngles:
-    """Flexion per joint and video frame, reference at C(t') against the student.
+    """Clinical joint angles (:mod:`motion.angles`) per video frame, the reference at C(t')
+    against the student.
 
     Attributes:
-        joints: ``J'`` joint names (the BVH's): those whose flexion is defined on the
-            reference (:func:`joint_flexion`).
+        coordinates: ``K'`` OpenSim coordinate names (``hip_flexion_r``, ``knee_angle_l``,
+            ``lumbar_extension``, ...): those the registration estimates.
         time_s: ``(T',)`` float64 time of each frame in the source video, seconds (the
             video's clock: its first registered frame ``first_frame`` is at
             ``first_frame / source rate``).
-        reference_deg: ``(T', J')`` float64 the reference's flexion at C(t'), degrees.
-        student_deg: ``(T', J')`` float64 the student's flexion, degrees.
-        difference_deg: ``(T', J')`` float64 ``student - reference`` (positive: the student
-            bends more), degrees.
-        articulation_deg: ``(T', J')`` float64 the rotation angle of A at the joint
-            (:attr:`Registration.a_degrees`, twist included), degrees.
+        reference_deg: ``(T', K')`` float64 the reference's angles at C(t'), degrees.
+        student_deg: ``(T', K')`` float64 the student's angles, degrees.
+        difference_deg: ``(T', K')`` float64 ``student - reference`` in the coordinate's
+            positive sense (:func:`motion.angles.describe_coordinate`: positive, the student
+            flexes, adducts, ... more), degrees.
+        articulation_deg: ``(T', K')`` float64 the angle of the rotation between the
+            reference's and the student's joint (the whole change at the coordinate's joint,
+            twist included; the three coordinates of a joint share it), degrees.
         first_frame, frame_step: frame ``t'`` is frame ``first_frame + t' frame_step`` of
             the source video (0-based).
     """
 
-    joints: list[str]
+    coordinates: list[str]
     time_s: Tensor
     reference_deg: Tensor
     student_deg: Tensor
@@ -292,18 +265,45 @@ def student_kinematics(reg: Registration, reference: Reference) -> FKResult:
     )
 
 
+def _segments(reference: Reference) -> SegmentMap:
+    try:
+        return SegmentMap.from_roles(reference.skeleton, reference.model.mapping)
+    except ValueError as e:
+        raise RegistrationError(f"{reference.name}: {e}") from None
+
+
 def joints_trusted(angles: JointAngles, reference: Reference, seen: Tensor) -> Tensor:
-    """``(T', J')`` bool for the joints of ``angles``: the joint, its parent and its
-    children are all ``seen`` ``(T', J)`` (e.g. inside every camera's image): a bend whose
-    bones leave the view is a guess."""
-    parents = reference.skeleton.parents
-    out = []
-    for name in angles.joints:
-        j = reference.skeleton.index(name)
-        near = [j, *([int(parents[j])] if parents[j] >= 0 else [])]
-        near += [k for k in range(len(parents)) if int(parents[k]) == j]
-        out.append(seen[:, near].all(1))
-    return torch.stack(out, 1)
+    """``(T', K')`` bool for the coordinates of ``angles``: every joint the coordinate rests
+    on (:func:`motion.angles.coordinate_joints`: both segments' bones) is ``seen``
+    ``(T', J)`` (e.g. inside every camera's image): an angle whose bones leave the view is
+    a guess."""
+    segments = _segments(reference)
+    columns = [
+        seen[:, coordinate_joints(reference.skeleton, name, segments)].all(1)
+        for name in angles.coordinates
+    ]
+    return torch.stack(columns, 1)
+
+
+def _estimated_coordinates(reference: Reference, segments: SegmentMap) -> list[bool]:
+    """Per coordinate of :data:`COORDINATES`: whether a joint the registration estimates (a
+    body part's frame joint, the root excepted) changes it (:func:`motion.angles.
+    coordinate_chain`); the others keep the reference's rotations, so their difference
+    would be zero by construction."""
+    estimated = {int(j) for j in reference.spec.frame_joints} - {0}
+    return [
+        bool(estimated.intersection(coordinate_chain(reference.skeleton, name, segments)))
+        for name in COORDINATES
+    ]
+
+
+def _rotation_angle_deg(rotation: Tensor) -> Tensor:
+    """``(...,)`` the angle of rotations ``(..., 3, 3)``, degrees in [0, 180] (from the
+    skew part and the trace: accurate near 0 and near 180)."""
+    skew = rotation - rotation.transpose(-1, -2)
+    sin = 0.5 * torch.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], -1).norm(dim=-1)
+    cos = 0.5 * (rotation.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    return torch.rad2deg(torch.atan2(sin, cos))
 
 
 def joint_angles(
@@ -313,11 +313,11 @@ def joint_angles(
     first_frame: int = 0,
     frame_step: int = 1,
 ) -> JointAngles:
-    """Flexion of the reference at C(t') and of the student, per joint and video frame.
+    """Clinical joint angles of the reference at C(t') and of the student, per video frame.
 
-    The reference's posture is :meth:`Reference.body_frames` at ``reg.C``; the student's is
-    the forward kinematics of ``reg.rotations`` (root rotation included) on the reference's
-    skeleton scaled by ``reg.G``, root at ``reg.T_translation``. End Sites count as children.
+    The reference's posture is its rotations at ``reg.C``, the student's ``reg.rotations``
+    (the root's rotation does not change any angle, nor does the body size G); the segments
+    come from the reference's role mapping (:meth:`motion.angles.SegmentMap.from_roles`).
 
     Args:
         reg: the registration (``T'`` frames).
@@ -327,10 +327,8 @@ def joint_angles(
             ``video.start`` and ``video.step``): times are on the source video's clock.
 
     Returns:
-        :class:`JointAngles` for the joints whose flexion is defined on the reference and
-        whose rotation the registration estimates (a body part's frame joint, the root
-        excepted: joints no part drives keep the reference's rotation, so their difference
-        would be zero by construction).
+        :class:`JointAngles` for the coordinates the registration estimates (a joint of a
+        body part between the coordinate's two segments).
     """
     _check_registration(reg, reference)
     frame_rate = _check_rate(frame_rate)
@@ -338,50 +336,45 @@ def joint_angles(
         raise RegistrationError(
             f"expected first_frame >= 0 and frame_step >= 1; got {first_frame}, {frame_step}"
         )
-    skel = reference.skeleton
-    g = float(reg.G)
-    ref_fk = reference.body_frames(reg.C)
-    ref = joint_flexion(ref_fk.positions, skel.parents, end_site_positions(skel, ref_fk))
-    stu_fk = student_kinematics(reg, reference)
-    stu = joint_flexion(stu_fk.positions, skel.parents, end_site_positions(skel, stu_fk, g))
-    driven = torch.zeros(skel.num_joints, dtype=torch.bool)
-    driven[reference.spec.frame_joints] = True
-    driven[0] = False  # the root's rotation is T, not a bend
-    keep = (torch.isfinite(ref).all(0) & driven).nonzero().flatten()
-    ref, stu = ref[:, keep], stu[:, keep]
+    segments = _segments(reference)
+    ref = clinical_angles(reference.skeleton, reference.rotations[reg.C].to(F64), segments)
+    stu = clinical_angles(reference.skeleton, reg.rotations.to(F64), segments)
+    keep = torch.tensor(_estimated_coordinates(reference, segments)).nonzero().flatten()
+    difference = stu.degrees[:, keep] - ref.degrees[:, keep]
+    change = ref.joint_rotations[:, keep].transpose(-1, -2) @ stu.joint_rotations[:, keep]
     return JointAngles(
-        joints=[skel.names[i] for i in keep.tolist()],
+        coordinates=[COORDINATES[i] for i in keep.tolist()],
         time_s=(first_frame / frame_step + torch.arange(reg.num_frames, dtype=F64)) / frame_rate,
-        reference_deg=ref,
-        student_deg=stu,
-        difference_deg=stu - ref,
-        articulation_deg=reg.a_degrees.to(F64)[:, keep],
+        reference_deg=ref.degrees[:, keep],
+        student_deg=stu.degrees[:, keep],
+        difference_deg=torch.remainder(difference + 180.0, 360.0) - 180.0,
+        articulation_deg=_rotation_angle_deg(change),
         first_frame=first_frame,
         frame_step=frame_step,
     )
 
 
 def per_joint_mean_abs_deg(angles: JointAngles) -> dict[str, float]:
-    """Mean ``|student - reference|`` flexion per joint over the frames, degrees (NaN frames
-    left out; NaN where a joint has none)."""
+    """Mean ``|student - reference|`` per coordinate over the frames, degrees (NaN frames
+    left out; NaN where a coordinate has none), keyed by the coordinate's name."""
     mean = angles.difference_deg.abs().nanmean(0)
-    return {name: float(v) for name, v in zip(angles.joints, mean.tolist(), strict=True)}
+    return {name: float(v) for name, v in zip(angles.coordinates, mean.tolist(), strict=True)}
 
 
 @dataclass
 class JointDifference:
-    """Where a joint's flexion differs most from the reference.
+    """Where a joint angle differs most from the reference.
 
     Attributes:
-        joint: the joint's name (the BVH's).
-        mean_difference_deg: mean ``student - reference`` flexion over the run, degrees
-            (negative: the student bends less).
+        coordinate: the angle's OpenSim name (:data:`motion.angles.COORDINATES`).
+        mean_difference_deg: mean ``student - reference`` over the run, degrees, in the
+            coordinate's positive sense (negative: the student flexes, adducts, ... less).
         start_s: video time of the run's first frame, seconds.
         end_s: video time of the run's last frame, seconds.
         mean_abs_deg: mean ``|student - reference|`` over all frames (the ranking), degrees.
     """
 
-    joint: str
+    coordinate: str
     mean_difference_deg: float
     start_s: float
     end_s: float
@@ -390,9 +383,9 @@ class JointDifference:
     @property
     def text(self) -> str:
         """One sentence, e.g. ``"Left knee flexes 18 degrees less than the reference between
-        1.20 s and 1.60 s"`` (the readable name where :data:`CMU_JOINT_NAMES` knows it)."""
-        name = readable_joint_name(self.joint)
-        name = name[:1].upper() + name[1:]
+        1.20 s and 1.60 s"`` (:func:`motion.angles.describe_coordinate`'s words)."""
+        words = describe_coordinate(self.coordinate)
+        name = words.joint[:1].upper() + words.joint[1:]
         size = abs(self.mean_difference_deg)
         amount = f"{size:.0f}" if size >= 1 else f"{size:.1f}"
         unit = "degree" if amount == "1" else "degrees"
@@ -402,7 +395,7 @@ class JointDifference:
             if self.start_s == self.end_s
             else f"between {self.start_s:.2f} s and {self.end_s:.2f} s"
         )
-        return f"{name} flexes {amount} {unit} {more} than the reference {when}"
+        return f"{name} {words.verb} {amount} {unit} {more} than the reference {when}"
 
     def to_dict(self) -> dict:
         """The fields and :attr:`text`, for JSON."""
@@ -449,7 +442,7 @@ def trusted_angles(
     angles: JointAngles, trusted: Tensor | None = None, smooth_s: float = SMOOTH_S
 ) -> JointAngles:
     """The angles a report should read: differences where ``trusted`` is False set to NaN
-    (``(T',)`` bool per frame, or ``(T', J')`` per frame and joint of ``angles``), then a
+    (``(T',)`` bool per frame, or ``(T', K')`` per frame and coordinate of ``angles``), then a
     centred running median over ``smooth_s`` seconds (a frame-to-frame jitter of the
     posture estimate is not a difference of the student's movement)."""
     diff = angles.difference_deg.detach().cpu().numpy().copy()
@@ -467,14 +460,14 @@ def trusted_angles(
 
 
 def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDifference]:
-    """The ``count`` joints whose flexion differs most from the reference, each with its
+    """The ``count`` coordinates that differ most from the reference, each with its
     longest stretch of a large difference.
 
-    Joints are ranked by the mean ``|student - reference|`` over the frames
+    Coordinates are ranked by the mean ``|student - reference|`` over the frames
     (:func:`per_joint_mean_abs_deg`; NaN frames left out, e.g. the untrusted ones of
-    :func:`trusted_angles`); a joint with no difference at all is left out. For each, the
+    :func:`trusted_angles`); one with no difference at all is left out. For each, the
     stretch is the longest run of consecutive frames where ``|difference|`` exceeds half
-    the joint's maximum ``|difference|`` with one sign, and :attr:`JointDifference.
+    the coordinate's maximum ``|difference|`` with one sign, and :attr:`JointDifference.
     mean_difference_deg` is the signed mean over it.
 
     Returns:
@@ -484,8 +477,8 @@ def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDiffer
         raise ValueError(f"count must be >= 0; got {count}")
     mean_abs = per_joint_mean_abs_deg(angles)
     order = sorted(
-        (i for i, n in enumerate(angles.joints) if math.isfinite(mean_abs[n])),
-        key=lambda i: (-mean_abs[angles.joints[i]], angles.joints[i]),
+        (i for i, n in enumerate(angles.coordinates) if math.isfinite(mean_abs[n])),
+        key=lambda i: (-mean_abs[angles.coordinates[i]], angles.coordinates[i]),
     )
     diff = angles.difference_deg.detach().cpu().numpy()
     time_s = angles.time_s.tolist()
@@ -495,7 +488,7 @@ def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDiffer
         if run is None:
             continue
         first, last = run
-        name = angles.joints[i]
+        name = angles.coordinates[i]
         out.append(
             JointDifference(
                 name,
@@ -515,11 +508,11 @@ def _num(x: float) -> str:
 
 
 def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
-    """Write :class:`JointAngles` as CSV, long format: one row per frame and joint, columns
-    ``frame`` (the source video's frame number), ``time_s`` (its clock), ``joint``,
-    ``reference_deg``,
-    ``student_deg``, ``difference_deg``, ``articulation_deg`` (10 significant digits; NaN
-    written as ``nan``). Returns the path."""
+    """Write :class:`JointAngles` as CSV, long format: one row per frame and coordinate,
+    columns ``frame`` (the source video's frame number), ``time_s`` (its clock),
+    ``coordinate`` (OpenSim's name), ``reference_deg``, ``student_deg``, ``difference_deg``,
+    ``articulation_deg`` (10 significant digits; NaN written as ``nan``). Returns the
+    path."""
     path = Path(path)
     columns = [
         angles.reference_deg,
@@ -527,14 +520,14 @@ def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
         angles.difference_deg,
         angles.articulation_deg,
     ]
-    values = torch.stack([c.to(F64) for c in columns], -1).tolist()  # (T', J', 4)
+    values = torch.stack([c.to(F64) for c in columns], -1).tolist()  # (T', K', 4)
     with path.open("w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(
             [
                 "frame",
                 "time_s",
-                "joint",
+                "coordinate",
                 "reference_deg",
                 "student_deg",
                 "difference_deg",
@@ -543,8 +536,8 @@ def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
         )
         rows = zip(angles.video_frames, angles.time_s.tolist(), values, strict=True)
         for frame, time_s, row in rows:
-            for joint, v in zip(angles.joints, row, strict=True):
-                writer.writerow([frame, _num(time_s), joint, *(_num(x) for x in v)])
+            for name, v in zip(angles.coordinates, row, strict=True):
+                writer.writerow([frame, _num(time_s), name, *(_num(x) for x in v)])
     return path
 
 
@@ -552,17 +545,18 @@ def write_mot(angles: JointAngles, path: str | Path, name: str | None = None) ->
     """Write :class:`JointAngles` as an OpenSim storage (``.mot``) table.
 
     Header lines ``name`` (default: the file's stem), ``version=1``, ``nRows=T'``,
-    ``nColumns=1 + 3 J'`` (time included), ``inDegrees=yes``, ``endheader``; then a
-    tab-separated column header ``time`` and per joint ``<joint>_student``,
-    ``<joint>_reference``, ``<joint>_difference``; then one row per frame (seconds,
-    degrees, 10 significant digits). Returns the path.
+    ``nColumns=1 + 3 K'`` (time included), ``inDegrees=yes``, ``endheader``; then a
+    tab-separated column header ``time`` and per coordinate the student's angle under the
+    coordinate's own name (as OpenSim's inverse kinematics writes it, so the file opens as
+    the student's motion), ``<name>_reference`` and ``<name>_difference``; then one row per
+    frame (seconds, degrees, 10 significant digits). Returns the path.
     """
     path = Path(path)
     names = ["time"]
-    for joint in angles.joints:
-        names += [f"{joint}_student", f"{joint}_reference", f"{joint}_difference"]
-    per_joint = [angles.student_deg, angles.reference_deg, angles.difference_deg]
-    table = torch.stack([x.to(F64) for x in per_joint], -1).flatten(1)  # (T', 3 J')
+    for coordinate in angles.coordinates:
+        names += [coordinate, f"{coordinate}_reference", f"{coordinate}_difference"]
+    per_coordinate = [angles.student_deg, angles.reference_deg, angles.difference_deg]
+    table = torch.stack([x.to(F64) for x in per_coordinate], -1).flatten(1)  # (T', 3 K')
     table = torch.cat([angles.time_s.to(F64)[:, None], table], 1)
     lines = [
         name or path.stem,
@@ -842,9 +836,9 @@ class RegistrationSummary:
         G: body scale.
         silhouette_iou_mean: mean of :attr:`fit` (``None`` when it has no finite value).
         fit: ``T'`` per-frame silhouette IoU.
-        per_joint_mean_abs_deg: mean ``|student - reference|`` flexion per joint, degrees
-            (joints whose student flexion is never defined left out).
-        largest_differences: :meth:`JointDifference.to_dict` of the joints that differ most
+        per_joint_mean_abs_deg: mean ``|student - reference|`` per clinical coordinate
+            (OpenSim's names), degrees (coordinates never defined left out).
+        largest_differences: :meth:`JointDifference.to_dict` of the coordinates that differ most
             (:func:`largest_differences` on the trusted frames), the largest stretch first.
         timings: seconds per stage.
         notes: what was estimated and how.
@@ -926,7 +920,7 @@ def summarise(
         settings: the settings the run used (plain JSON-able values).
         count: how many :func:`largest_differences` to keep.
         trusted: ``(T',)`` bool, the frames the largest differences may come from, or
-            ``(T', J')`` per frame and joint of ``angles`` (default: ``reg.fit >=
+            ``(T', K')`` per frame and coordinate of ``angles`` (default: ``reg.fit >=
             TRUSTED_FIT``).
         movement: the movement check (``None``: taken as matching, with no evidence);
             its reasons come first in :attr:`RegistrationSummary.warnings`, then

@@ -18,7 +18,8 @@ Skeleton (parents before children; ``l``/``r`` the marker roles of the keypoint 
         RightShoulder ... (the same on the right)
 
 Rest pose (all rotations zero): a T-pose facing +Z with +X to the person's left, Y up (the
-BVH convention; Pose2Sim's TRC is Y up too): legs straight down -Y, feet forward +Z, spine,
+BVH convention; Pose2Sim's TRC is Y up too): legs straight down -Y, feet forward +Z (the ankle-to-toe bone sloping down as a flat
+foot's does, by its median angle to the heel-to-toe line where there are heel markers), spine,
 neck and head up +Y, clavicles and arms sideways (+X left, -X right). Bone lengths are the
 median over frames of the distance from the parent joint to the child's marker, so on a
 recording whose bones are rigid the skeleton reproduces it exactly, and on triangulated
@@ -106,7 +107,7 @@ MARKER_JOINTS = {
     "wrist_r": "RightHand",
 }
 # markers used only for twists, looked up by name (absent: the minimal swing is used)
-_OPTIONAL = {"nose": "Nose"}
+_OPTIONAL = {"nose": "Nose", "heel_l": "LHeel", "heel_r": "RHeel"}
 _UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 
 _X = np.array([1.0, 0.0, 0.0])
@@ -291,6 +292,18 @@ def _role_points(markers: Markers, spec) -> dict[str, np.ndarray]:
     return out
 
 
+def _rest_foot(ankle: np.ndarray, toe: np.ndarray, heel: np.ndarray | None) -> np.ndarray:
+    """The rest direction of the ankle-to-toe bone: forward (+Z), sloping down by the
+    median angle between the ankle-to-toe and heel-to-toe lines where a heel marker exists,
+    so that the rest foot stands flat (the sole, heel to toe, horizontal: the neutral of the
+    clinical ankle angle, :mod:`motion.angles`); without one, horizontal."""
+    if heel is None:
+        return _Z
+    cos = np.sum(_unit(toe - ankle) * _unit(toe - heel), axis=-1)
+    slope = float(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return np.array([0.0, -math.sin(slope), math.cos(slope)])
+
+
 def skeleton_bvh_from_markers(markers: Markers, spec="pose2sim_21") -> BVH:
     """A BVH skeleton and motion whose joints follow the markers (the module docstring
     says how).
@@ -302,7 +315,7 @@ def skeleton_bvh_from_markers(markers: Markers, spec="pose2sim_21") -> BVH:
         spec: the keypoint spec whose ``roles`` name the markers of each role
             (:func:`motion.bodyparts.load_spec`: a bundled name, a path, or a dict): every
             role of :data:`MARKER_JOINTS` is needed; a ``Nose`` marker, where present,
-            fixes the head's twist.
+            fixes the head's twist, ``LHeel``/``RHeel`` the rest slope of the feet.
 
     Returns:
         :class:`motion.bvh.BVH` in metres at ``markers.rate`` (path ``<markers>``; write it
@@ -326,8 +339,9 @@ def skeleton_bvh_from_markers(markers: Markers, spec="pose2sim_21") -> BVH:
         b.joint(f"{side}Leg", f"{side}UpLeg", -b.median_length(knee, f"{side}UpLeg") * _Y, "ZYX")
         b.aim(f"{side}Leg", ankle, -_Y)
         b.joint(f"{side}Foot", f"{side}Leg", -b.median_length(ankle, f"{side}Leg") * _Y, "ZYX")
-        b.aim(f"{side}Foot", toe, _Z)
-        b.joint(f"{side}ToeBase", f"{side}Foot", b.median_length(toe, f"{side}Foot") * _Z, "ZYX")
+        foot = _rest_foot(ankle, toe, pts.get(f"heel_{s}"))
+        b.aim(f"{side}Foot", toe, foot)
+        b.joint(f"{side}ToeBase", f"{side}Foot", b.median_length(toe, f"{side}Foot") * foot, "ZYX")
         b.keep(f"{side}ToeBase")
         b.end_site(f"{side}ToeBase", TOE_END_M * _Z)
     trunk = float(np.median(np.linalg.norm(pts["neck"] - mid, axis=-1)))

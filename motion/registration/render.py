@@ -11,6 +11,7 @@ Images are ``(H, W, 3)`` uint8 RGB; poses ``(T', P, 7)`` (metres, quaternion ``w
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -24,7 +25,7 @@ from motion.cameras import CameraRig, resized_rig
 from motion.draw import PART_COLOURS
 from motion.registration.refine import place_poses
 from motion.registration.types import Reference, Registration, scaled_spec
-from motion.render import label_map, project_parts
+from motion.render import ProjectedParts, label_map, project_parts
 
 __all__ = [
     "BodyPoses",
@@ -100,10 +101,36 @@ def camera(rig: CameraRig, index: int) -> CameraRig:
 
 
 def _labels(rig: CameraRig, segments: Tensor, radii: Tensor, height: int, width: int) -> Tensor:
-    """``(N, H, W)`` long part in front at each pixel (-1: none) of a one-camera rig."""
+    """``(N, H, W)`` long part in front at each pixel (-1: none) of a one-camera rig.
+
+    Each frame's map is computed inside the box around its projected parts only (the
+    pixels outside it are none by construction): a body covers a small part of a frame,
+    and an overlay upscaled to 720 px would otherwise test every part at every pixel."""
     parts = project_parts(rig, segments.to(rig.K), radii.to(rig.K))
-    labels, _ = label_map(parts, height, width)
-    return labels[:, 0]
+    out = torch.full((len(segments), height, width), -1, dtype=torch.long)
+    reach = parts.ends - parts.radii[..., None]  # (N, 1, P, 2, 2): the ends less the radii
+    low = reach.flatten(-3, -2).amin(-2)[:, 0]  # (N, 2) x, y
+    high = (parts.ends + parts.radii[..., None]).flatten(-3, -2).amax(-2)[:, 0]
+    for k in range(len(segments)):
+        if not (torch.isfinite(low[k]).all() and torch.isfinite(high[k]).all()):
+            labels, _ = label_map(_frame_parts(parts, k), height, width)  # let it decide
+            out[k] = labels[0]
+            continue
+        x0, y0 = (max(0, math.floor(float(v))) for v in low[k])
+        x1 = min(width, math.ceil(float(high[k, 0])) + 1)
+        y1 = min(height, math.ceil(float(high[k, 1])) + 1)
+        if x1 <= x0 or y1 <= y0:
+            continue  # the body is outside the image
+        one = _frame_parts(parts, k)
+        shift = torch.tensor([x0, y0], dtype=one.ends.dtype, device=one.ends.device)
+        shifted = ProjectedParts(one.ends - shift, one.radii, one.depth)
+        labels, _ = label_map(shifted, y1 - y0, x1 - x0)
+        out[k, y0:y1, x0:x1] = labels[0].cpu()
+    return out
+
+
+def _frame_parts(parts: ProjectedParts, k: int) -> ProjectedParts:
+    return ProjectedParts(parts.ends[k], parts.radii[k], parts.depth[k])
 
 
 def draw_body(image: np.ndarray, labels: np.ndarray, alpha: float = OVERLAY_ALPHA) -> np.ndarray:

@@ -26,13 +26,13 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from motion.angles import describe_coordinate
 from motion.cameras import CameraRig
 from motion.registration.approximate import SCALE_NOT_ESTIMATED
 from motion.registration.export import (
     TRUSTED_FIT,
     JointAngles,
     RegistrationSummary,
-    readable_joint_name,
 )
 from motion.registration.render import BodyPoses, side_by_side_frames
 from motion.registration.types import Registration
@@ -160,8 +160,8 @@ def _heatmap_joints(inputs: ReportInputs) -> list[int]:
 
 
 def heatmap_figure(inputs: ReportInputs) -> str:
-    """Joint differences (student - reference bend, degrees) over video time: red where the
-    student bends more, blue where less."""
+    """Joint angle differences (student - reference, degrees) over video time: red where
+    the student flexes (adducts, ...) more, blue where less."""
     a = inputs.angles
     cols = _heatmap_joints(inputs)
     diff = a.difference_deg.numpy()[:, cols].T.copy()
@@ -181,9 +181,9 @@ def heatmap_figure(inputs: ReportInputs) -> str:
         extent=(time[0] - step / 2, time[-1] + step / 2, len(cols) - 0.5, -0.5),
         interpolation="nearest",
     )
-    ax.set_yticks(range(len(cols)), [readable_joint_name(a.joints[c]) for c in cols], fontsize=8)
+    ax.set_yticks(range(len(cols)), [describe_coordinate(a.coordinates[c]).label for c in cols], fontsize=8)
     ax.set_xlabel("student video time (s)")
-    ax.set_title("How much more (red) or less (blue) each joint bends than the reference")
+    ax.set_title("How much more (red) or less (blue) each joint angle is than the reference's")
     fig.colorbar(im, ax=ax, label="degrees", fraction=0.04, pad=0.02)
     return _png(fig)
 
@@ -309,7 +309,7 @@ def render_report(inputs: ReportInputs) -> str:
         heatmap=heatmap_figure(inputs),
         fit_plot=fit_figure(inputs),
         key_frames=_key_frame_pictures(inputs, key_frames(inputs)),
-        per_joint=[(readable_joint_name(n), n, f"{deg:.1f}") for n, deg in per_joint],
+        per_joint=[(describe_coordinate(n).label, n, f"{deg:.1f}") for n, deg in per_joint],
         timings=[(k, f"{v:.1f}") for k, v in s.timings.items()],
         notes=sorted(s.notes.items()),
         other_warnings=s.warnings[len(s.movement.get("reasons", [])) :],

@@ -1,6 +1,7 @@
 """register_synthetic's ground truth: the true C of another performer is the monotone
 alignment of two root-normalised 3-D motions -- against itself it is the warp exactly; the
-swing error leaves out the twist about the bone and only that."""
+swing error leaves out the twist about the bone and only that; stated findings are scored
+against the true differences over their own frames."""
 
 from __future__ import annotations
 
@@ -9,9 +10,12 @@ import math
 import torch
 
 from experiments.register_synthetic import (
+    Truth,
     _bone_directions,
     _swing_error_deg,
+    finding_agreement,
     true_correspondence,
+    true_differences,
 )
 from motion.registration import Reference
 from motion.synth import time_warp
@@ -44,3 +48,45 @@ def test_swing_error_ignores_twist_about_the_bone_and_measures_a_bend():
     )
     bend = turn(side, math.radians(25))
     assert abs(float(_swing_error_deg(eye, bend, d)) - 25) < 1e-6
+
+
+def test_a_stated_finding_agrees_when_its_sign_and_size_match_the_truth_over_its_frames():
+    """Findings scored by hand: the truth over each finding's frames (not the whole video)
+    decides; a finding not stated is only counted as withheld."""
+    time_s = torch.arange(10, dtype=torch.float64) / 10
+    truth = torch.zeros(10, 2, dtype=torch.float64)
+    truth[2:5, 0] = 12.0  # knee: +12 over 0.2-0.4 s, 0 elsewhere
+    truth[:, 1] = -3.0  # elbow: a steady -3
+    names = ["knee_angle_l", "elbow_flex_r"]
+
+    def finding(name, start, end, deg, stated=True):
+        return {
+            "coordinate": name,
+            "start_s": start,
+            "end_s": end,
+            "mean_difference_deg": deg,
+            "stated": stated,
+        }
+
+    found = [
+        finding("knee_angle_l", 0.2, 0.4, 8.0),  # within 5 of 12, same sign: agrees
+        finding("knee_angle_l", 0.5, 0.9, 4.0),  # true 0 there: no difference to state
+        finding("elbow_flex_r", 0.0, 0.9, -9.0),  # 6 off: too far
+        finding("elbow_flex_r", 0.0, 0.9, -1.0, stated=False),
+    ]
+    score = finding_agreement(found, time_s, truth, names)
+    assert score == {
+        "findings_stated": 3.0,
+        "findings_agree_fraction": 1 / 3,
+        "findings_withheld_fraction": 0.25,
+    }
+    assert math.isnan(finding_agreement([], time_s, truth, names)["findings_agree_fraction"])
+    quiet = finding_agreement(found[3:], time_s, truth, names)
+    assert quiet["findings_stated"] == 0 and math.isnan(quiet["findings_agree_fraction"])
+
+
+def test_true_differences_of_the_reference_against_itself_are_zero():
+    ref = Reference.from_bvh(WALK)
+    shown = torch.arange(0, 40, 2)
+    truth = Truth(shown, None, None, ref.rotations[shown], None, 1.7)
+    assert true_differences(ref, None, truth).abs().max() < 1e-9

@@ -109,11 +109,13 @@ def test_a_config_without_a_sweep_is_resumable_too(tmp_path, toy_registered):
 
 
 def test_a_failing_entry_is_named_and_the_rest_of_the_sweep_completes(tmp_path, capsys):
-    """stick_time refuses a full cost matrix above full_matrix_max_cells (inside its run)."""
+    """stick_time refuses a full cost matrix above full_matrix_max_cells (inside its run). The
+    failing entry runs first; tiny runs a sweep's first and last entries, so the middle one is
+    checked but not run."""
     cfg = tmp_path / "sweep.yaml"
     cfg.write_text(
         STICK_TIME.read_text().split("sweep:")[0]
-        + "sweep:\n  - {corrupt: false}\n  - {full_matrix_max_cells: 1}\n  - {corrupt: true}\n"
+        + "sweep:\n  - {full_matrix_max_cells: 1}\n  - {corrupt: false}\n  - {corrupt: true}\n"
     )
     out = tmp_path / "out"
     argv = [
@@ -127,30 +129,30 @@ def test_a_failing_entry_is_named_and_the_rest_of_the_sweep_completes(tmp_path, 
     std = capsys.readouterr()
     assert std.err.count("\n") == 1, std.err
     assert std.err.startswith(
-        "error: stick_time: 1 of 3 runs failed: full_matrix_max_cells=1 (ConfigError: "
+        "error: stick_time: 1 of 2 runs failed: full_matrix_max_cells=1 (ConfigError: "
     )
     assert "use methods=[c2f] for long sequences" in std.err
     assert std.err.endswith(f"; the other runs' records are in {out}\n")
     # one line per finished run: the counts, then what finished
     assert re.search(
-        r"^stick_time: sweep: 2/3 \(running 1, done 1, failed 1; \d+ s\) -- "
+        r"^stick_time: sweep: 1/2 \(running 1, done 0, failed 1; \d+ s\) -- "
         r"full_matrix_max_cells=1: FAILED: ConfigError: full_matrix_max_cells=1: the full cost",
         std.out,
         re.M,
     ), std.out
     assert re.search(
-        r"^stick_time: sweep: 3/3 \(running 0, done 2, failed 1; \d+ s\) -- "
+        r"^stick_time: sweep: 2/2 \(running 0, done 1, failed 1; \d+ s\) -- "
         r"corrupt=True: done in \d+\.\d s$",
         std.out,
         re.M,
     ), std.out
-    assert (out / "corrupt-False" / "metrics.json").exists()
+    assert not (out / "corrupt-False").exists()  # tiny: the middle entry is not run
     assert (out / "corrupt-True" / "metrics.json").exists()
     assert not (out / "full_matrix_max_cells-1").exists()
     table = (out / "table.md").read_text().splitlines()
-    assert [row.split(" | ")[0] for row in table[2:]] == ["| corrupt=False", "| corrupt=True"]
+    assert [row.split(" | ")[0] for row in table[2:]] == ["| corrupt=True"]
     combined = json.loads((out / "metrics.json").read_text())
-    assert {k.split("@")[1] for k in combined} == {"corrupt=False", "corrupt=True"}
+    assert {k.split("@")[1] for k in combined} == {"corrupt=True"}
     # the figures of the runs that finished are printed too
     assert "c_err_mean_robust@corrupt=True" in std.out
 

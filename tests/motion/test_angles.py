@@ -10,7 +10,16 @@ import pytest
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from motion.angles import COORDINATES, clinical_angles
+from motion.angles import (
+    CMU_SEGMENTS,
+    COORDINATES,
+    CoordinateWords,
+    SegmentMap,
+    clinical_angles,
+    coordinate_chain,
+    coordinate_joints,
+    describe_coordinate,
+)
 from motion.kinematics import forward_kinematics
 from motion.registration.types import Reference
 from tests.motion.registration.conftest import REFERENCE, STUDENT
@@ -97,6 +106,7 @@ MOVES = [
     ("elbow_flex_l", "LeftForeArm", RIGHT, "LeftHand", ANTERIOR),
     ("lumbar_extension", "Spine", RIGHT, "Neck", -ANTERIOR),
     ("lumbar_bending", "Spine", ANTERIOR, "Neck", RIGHT),
+    ("lumbar_rotation", "Spine", UP, "RightArm", ANTERIOR),  # chest turns left
 ]
 
 
@@ -158,3 +168,41 @@ def test_cmu_walks_fall_inside_normal_gait_ranges(path):
 def test_a_posture_of_another_skeleton_is_refused(reference):
     with pytest.raises(ValueError, match=r"rotations must be \(\.\.\., 31, 3, 3\)"):
         clinical_angles(reference.skeleton, torch.eye(3, dtype=F64).repeat(5, 30, 1, 1))
+
+
+def test_segments_follow_the_role_mapping(reference):
+    """The CMU walk's roles give CMU_SEGMENTS (the torso is the neck's parent, Spine1); a
+    role mapped to no joint is an error naming it; each coordinate rests on both its
+    segments' joints and their children, and is changed by the joints between them."""
+    skeleton = reference.skeleton
+    assert SegmentMap.from_roles(skeleton, reference.model.mapping) == CMU_SEGMENTS
+    broken = {**reference.model.mapping, "knee_l": ["LeftLeg.end"]}
+    with pytest.raises(ValueError, match="role 'knee_l' mapped to one joint"):
+        SegmentMap.from_roles(skeleton, broken)
+    names = skeleton.names
+    assert [names[j] for j in coordinate_joints(skeleton, "knee_angle_l")] == [
+        "LeftUpLeg",
+        "LeftLeg",
+        "LeftFoot",
+    ]
+    assert [names[j] for j in coordinate_chain(skeleton, "lumbar_extension")] == [
+        "Spine1",
+        "Spine",
+        "LowerBack",
+    ]
+    assert [names[j] for j in coordinate_chain(skeleton, "arm_flex_r")] == [
+        "RightArm",
+        "RightShoulder",
+    ]
+
+
+def test_coordinates_have_words_for_reports():
+    assert describe_coordinate("knee_angle_r") == CoordinateWords(
+        "right knee", "flexes", "right knee flexion"
+    )
+    assert describe_coordinate("ankle_angle_l").verb == "dorsiflexes"
+    assert describe_coordinate("lumbar_extension").label == "lower back extension"
+    assert describe_coordinate("pelvis_tilt") == CoordinateWords(
+        "pelvis_tilt", "measures", "pelvis_tilt"
+    )
+    assert all(describe_coordinate(c).verb != "measures" for c in COORDINATES)

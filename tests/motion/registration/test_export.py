@@ -13,6 +13,7 @@ import pytest
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from motion.angles import COORDINATES, clinical_angles
 from motion.bvh import BVH, read_bvh, write_bvh
 from motion.kinematics import Skeleton, euler_to_matrix, forward_kinematics, local_rotations
 from motion.registration.export import (
@@ -177,65 +178,62 @@ def test_end_site_positions_on_the_walk(reference):
             assert torch.isnan(ends[:, j]).all()
 
 
-def bend_articulation(reference: Reference, reg_c: torch.Tensor, joint: str, child: str, deg):
-    """``(T', J, 3, 3)`` A that bends ``joint`` by ``deg`` more (no twist): a rotation about
-    the normal of the incoming and outgoing bones, in the joint's own frame."""
+def flex_articulation(reference: Reference, reg_c, joint: str, deg: float) -> torch.Tensor:
+    """``(T', J, 3, 3)`` A that turns ``joint``'s segment by ``deg`` about its parent
+    segment's lateral axis (the flexion axis of the knee and the elbow): the parent's
+    anatomical frame is its joint's global frame with the rest bone turned straight down,
+    whose +right is the BVH's -X (the walk faces +Z at rest)."""
     skel = reference.skeleton
-    j, k = skel.index(joint), skel.index(child)
+    j = skel.index(joint)
+    p = int(skel.parents[j])
+    identity = torch.eye(3, dtype=F64).expand(1, skel.num_joints, 3, 3)
+    rest = forward_kinematics(skel, identity, torch.zeros(1, 3, dtype=F64)).positions[0]
+    bone, down = rest[j] - rest[p], torch.tensor([0.0, -1.0, 0.0], dtype=F64)
+    bone = bone / bone.norm()
+    axis = torch.linalg.cross(bone, down)
+    angle = torch.atan2(axis.norm(), torch.dot(bone, down))
+    turn_down = rodrigues(axis / axis.norm() * angle)  # the parent bone at neutral
+    right = torch.tensor([-1.0, 0.0, 0.0], dtype=F64)
+    local = reference.rotations[reg_c, j]  # (T', 3, 3)
+    axis_local = local.transpose(-1, -2) @ (turn_down.T @ right)  # in the joint's frame
     a = torch.eye(3, dtype=F64).expand(len(reg_c), skel.num_joints, 3, 3).clone()
-    r_j = reference.rotations[reg_c, j]  # (T', 3, 3)
-    incoming = (r_j.transpose(-1, -2) @ skel.offsets[j].to(F64)[:, None]).squeeze(-1)
-    outgoing = skel.offsets[k].to(F64).expand_as(incoming)
-    normal = torch.linalg.cross(incoming, outgoing)
-    normal = normal / normal.norm(dim=-1, keepdim=True)
-    a[:, j] = rodrigues(normal * math.radians(deg))
+    a[:, j] = rodrigues(axis_local * math.radians(deg))
     return a
 
 
-def test_joint_angles_see_a_known_bend(reference):
-    """A bends the left knee 12 and the right elbow 20 degrees more (no twist): the
-    difference is exactly that there and zero elsewhere, whatever T and G; the reference's
-    flexion is that of its full forward kinematics at C."""
+def test_joint_angles_see_a_known_flexion(reference):
+    """A flexes the left knee 12 and the right elbow 20 degrees more (a turn about the
+    parent segment's lateral axis): knee_angle_l and elbow_flex_r differ by exactly that,
+    every other coordinate not at all, whatever T and G; the joint's whole change is the
+    turn; the reference's angles are clinical_angles of its rotations at C."""
     base = make_registration(reference)
-    a = bend_articulation(reference, base.C, "LeftLeg", "LeftFoot", 12.0)
-    a2 = bend_articulation(reference, base.C, "RightForeArm", "RightHand", 20.0)
-    a[:, reference.skeleton.index("RightForeArm")] = a2[:, reference.skeleton.index("RightForeArm")]
+    elbow = reference.skeleton.index("RightForeArm")
+    a = flex_articulation(reference, base.C, "LeftLeg", -12.0)  # knee flexion: about -right
+    a[:, elbow] = flex_articulation(reference, base.C, "RightForeArm", 20.0)[:, elbow]
     reg = make_registration(reference, articulation=a, scale=1.2)
     angles = joint_angles(reg, reference, frame_rate=30.0)
 
-    # the joints a body part drives (the root's rotation is T), in skeleton order
-    assert angles.joints == [
-        "LeftUpLeg",
-        "LeftLeg",
-        "LeftFoot",
-        "RightUpLeg",
-        "RightLeg",
-        "RightFoot",
-        "Spine",
-        "Neck1",
-        "LeftArm",
-        "LeftForeArm",
-        "RightArm",
-        "RightForeArm",
-    ]
+    # the walk's parts turn every segment of the 21 coordinates
+    assert angles.coordinates == COORDINATES
     t = reg.num_frames
     torch.testing.assert_close(angles.time_s, torch.arange(t, dtype=F64) / 30.0)
-    want = torch.zeros(t, len(angles.joints), dtype=F64)
-    want[:, angles.joints.index("LeftLeg")] = 12.0
-    want[:, angles.joints.index("RightForeArm")] = 20.0
-    torch.testing.assert_close(angles.difference_deg, want, atol=1e-9, rtol=0)
-    torch.testing.assert_close(angles.articulation_deg, want, atol=1e-5, rtol=0)
+    want = torch.zeros(t, len(COORDINATES), dtype=F64)
+    want[:, COORDINATES.index("knee_angle_l")] = 12.0
+    want[:, COORDINATES.index("elbow_flex_r")] = 20.0
+    # 1e-4 degrees: the rest hip line (the body's lateral axis) is the BVH's -X only to the
+    # float32 precision of its offsets, which tilts the arm's flexion axis by ~1e-6 rad
+    torch.testing.assert_close(angles.difference_deg, want, atol=1e-4, rtol=0)
     torch.testing.assert_close(angles.student_deg - angles.reference_deg, angles.difference_deg)
+    change = torch.zeros_like(want)  # a joint's coordinates share its whole change
+    change[:, COORDINATES.index("knee_angle_l")] = 12.0
+    change[:, COORDINATES.index("elbow_flex_r")] = 20.0
+    torch.testing.assert_close(angles.articulation_deg, change, atol=1e-5, rtol=0)
 
-    # the reference at C, through the full forward kinematics (root moved and turned)
-    skel = reference.skeleton
-    fk = forward_kinematics(skel, reference.rotations[reg.C], reference.root[reg.C])
-    full = joint_flexion(fk.positions, skel.parents, end_site_positions(skel, fk))
-    cols = [skel.index(n) for n in angles.joints]
-    torch.testing.assert_close(angles.reference_deg, full[:, cols], atol=1e-9, rtol=0)
-    # the knee of the walk bends between ~0 and ~70 degrees (a sanity check on the joint)
-    knee = angles.reference_deg[:, angles.joints.index("LeftLeg")]
-    assert 0.0 <= float(knee.min()) < 20.0 < float(knee.max()) < 80.0
+    want_ref = clinical_angles(reference.skeleton, reference.rotations[reg.C]).degrees
+    torch.testing.assert_close(angles.reference_deg, want_ref, atol=1e-9, rtol=0)
+    # the walk's knee flexes between ~0 and ~75 degrees (a sanity check on the column)
+    knee_l = angles.reference_deg[:, COORDINATES.index("knee_angle_l")]
+    assert -5.0 <= float(knee_l.min()) < 20.0 < float(knee_l.max()) < 80.0
 
 
 def test_joint_angles_reject_a_mismatched_registration(reference):
@@ -251,8 +249,8 @@ def test_joint_angles_reject_a_mismatched_registration(reference):
 
 
 def hand_angles() -> JointAngles:
-    """100 frames at 50 Hz: LeftLeg 18 less in 1.20-1.60 s (16 more in a shorter run
-    before), RightForeArm a steady 5 more with a peak, Bar +10 then -10 (two runs of ten
+    """100 frames at 50 Hz: knee_angle_l 18 less in 1.20-1.60 s (16 more in a shorter run
+    before), elbow_flex_r a steady 5 more with a peak, Bar +10 then -10 (two runs of ten
     frames), Foo no difference."""
     t = 100
     diff = torch.zeros(t, 4, dtype=F64)
@@ -265,7 +263,7 @@ def hand_angles() -> JointAngles:
     diff[40:50, 2] = -10.0
     reference = 40.0 + torch.arange(t * 4, dtype=F64).reshape(t, 4) / 100
     return JointAngles(
-        joints=["LeftLeg", "RightForeArm", "Bar", "Foo"],
+        coordinates=["knee_angle_l", "elbow_flex_r", "Bar", "Foo"],
         time_s=torch.arange(t, dtype=F64) / 50.0,
         reference_deg=reference,
         student_deg=reference + diff,
@@ -278,33 +276,33 @@ def test_per_joint_mean_abs():
     angles = hand_angles()
     got = per_joint_mean_abs_deg(angles)
     diff = angles.difference_deg.numpy()
-    assert list(got) == angles.joints
-    for i, name in enumerate(angles.joints):
+    assert list(got) == angles.coordinates
+    for i, name in enumerate(angles.coordinates):
         assert got[name] == pytest.approx(float(np.mean(np.abs(diff[:, i]))), abs=1e-12)
-    assert got["RightForeArm"] == pytest.approx((97 * 5 + 3 * 9) / 100)
+    assert got["elbow_flex_r"] == pytest.approx((97 * 5 + 3 * 9) / 100)
     assert got["Foo"] == 0.0
 
 
 def test_largest_differences_runs_and_text():
     diffs = largest_differences(hand_angles(), count=3)
-    # ranked by mean |difference|: RightForeArm 5.12, LeftLeg ~4.7, Bar 2; Foo never differs
-    assert [d.joint for d in diffs] == ["RightForeArm", "LeftLeg", "Bar"]
+    # ranked by mean |difference|: elbow 5.12, knee ~4.7, Bar 2; Foo never differs
+    assert [d.coordinate for d in diffs] == ["elbow_flex_r", "knee_angle_l", "Bar"]
     arm, leg, bar = diffs
     assert (leg.start_s, leg.end_s) == pytest.approx((1.2, 1.6))
     assert leg.mean_difference_deg == pytest.approx(-18.0)
     assert (
         leg.text == "Left knee flexes 18 degrees less than the reference between 1.20 s and 1.60 s"
     )
-    # RightForeArm: max 9, half 4.5: every frame exceeds it, one run over the whole video
+    # the elbow: max 9, half 4.5: every frame exceeds it, one run over the whole video
     assert (arm.start_s, arm.end_s) == pytest.approx((0.0, 1.98))
     assert arm.mean_difference_deg == pytest.approx(5.12)
     assert arm.text.startswith("Right elbow flexes 5 degrees more than the reference between")
     # Bar: two runs of ten frames of opposite sign: the tie goes to the earlier, +10
     assert (bar.start_s, bar.end_s) == pytest.approx((0.6, 0.78))
     assert bar.mean_difference_deg == pytest.approx(10.0)
-    assert bar.text == "Bar flexes 10 degrees more than the reference between 0.60 s and 0.78 s"
+    assert bar.text == "Bar measures 10 degrees more than the reference between 0.60 s and 0.78 s"
     assert bar.to_dict()["text"] == bar.text
-    assert [d.joint for d in largest_differences(hand_angles(), count=1)] == ["RightForeArm"]
+    assert [d.coordinate for d in largest_differences(hand_angles(), count=1)] == ["elbow_flex_r"]
 
 
 # --------------------------------------------------------------------------- tables
@@ -319,17 +317,17 @@ def test_joint_angles_csv_reads_back(tmp_path, reference):
     assert reader.fieldnames == [
         "frame",
         "time_s",
-        "joint",
+        "coordinate",
         "reference_deg",
         "student_deg",
         "difference_deg",
         "articulation_deg",
     ]
-    j = len(angles.joints)
-    assert len(rows) == 6 * j
+    k_ = len(angles.coordinates)
+    assert len(rows) == 6 * k_
     for n, row in enumerate(rows):
-        t, k = divmod(n, j)
-        assert int(row["frame"]) == t and row["joint"] == angles.joints[k]
+        t, k = divmod(n, k_)
+        assert int(row["frame"]) == t and row["coordinate"] == angles.coordinates[k]
         assert float(row["time_s"]) == pytest.approx(t / 25.0, rel=1e-9, abs=1e-12)
         for column in ("reference_deg", "student_deg", "difference_deg", "articulation_deg"):
             want = float(getattr(angles, column)[t, k])
@@ -361,16 +359,28 @@ def test_mot_reads_back(tmp_path):
     assert lines[0] == "student"
     assert header == {"version": "1", "nRows": "100", "nColumns": "13", "inDegrees": "yes"}
     columns = lines[end + 1].split("\t")
-    assert columns[:4] == ["time", "LeftLeg_student", "LeftLeg_reference", "LeftLeg_difference"]
+    # the student's angle under the coordinate's own name, as OpenSim's IK writes it
+    assert columns[:4] == [
+        "time",
+        "knee_angle_l",
+        "knee_angle_l_reference",
+        "knee_angle_l_difference",
+    ]
     assert len(columns) == 13 and columns[-1] == "Foo_difference"
     table = np.array([[float(x) for x in line.split("\t")] for line in lines[end + 2 :]])
     assert table.shape == (100, 13)
     np.testing.assert_allclose(table[:, 0], angles.time_s.numpy(), rtol=1e-9)
-    for k, joint in enumerate(angles.joints):
-        for i, field in enumerate(("student_deg", "reference_deg", "difference_deg")):
-            got = table[:, columns.index(f"{joint}_{field.split('_')[0]}")]
+    for k, name in enumerate(angles.coordinates):
+        for i, (field, suffix) in enumerate(
+            (
+                ("student_deg", ""),
+                ("reference_deg", "_reference"),
+                ("difference_deg", "_difference"),
+            )
+        ):
+            got = table[:, columns.index(f"{name}{suffix}")]
             np.testing.assert_allclose(got, getattr(angles, field)[:, k].numpy(), rtol=1e-9)
-            assert columns.index(f"{joint}_{field.split('_')[0]}") == 1 + 3 * k + i
+            assert columns.index(f"{name}{suffix}") == 1 + 3 * k + i
 
 
 # --------------------------------------------------------------------------- BVH
@@ -540,7 +550,7 @@ def test_summary_speed_offset_and_json(reference):
     base = make_registration(reference, num_frames=t)
     reg = make_registration(reference, num_frames=t)
     reg.C = 5 + 3 * torch.arange(t)
-    bend = bend_articulation(reference, reg.C, "LeftLeg", "LeftFoot", 12.0)
+    bend = flex_articulation(reference, reg.C, "LeftLeg", -12.0)  # the knee flexes 12 more
     reg.rotations = reference.rotations[reg.C] @ bend
     reg.fit = base.fit.double().clamp_min(TRUSTED_FIT)  # every frame trusted but frame 3
     reg.fit[3] = math.nan

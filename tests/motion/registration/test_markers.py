@@ -283,3 +283,46 @@ def test_pose2sim_trial(name, tmp_path):
         )
     # continuity: no half-turn twist flips (the raw file's noisiest frame turns 84 degrees)
     assert np.abs(np.diff(bvh.motion[:, 3:], axis=0)).max() < 90.0
+
+
+def test_heel_markers_slope_the_rest_foot_so_that_its_sole_is_flat():
+    """With heel markers (rigid on the foot: 6 cm below and 4 cm behind the ankle in the
+    foot's frame) the rest ankle-to-toe bone slopes down by the angle between the
+    ankle-to-toe and heel-to-toe lines, so the rest sole is horizontal (the clinical ankle
+    angle's neutral); the legs still land on their markers; without heels the foot is
+    horizontal."""
+    markers, src = _walk_markers()
+    walk = read_bvh(WALK)
+    walk.motion = walk.motion_frames().copy()
+    skeleton, fk, _ = _points(walk)
+    heels, want = [], {}
+    for side in ("Left", "Right"):
+        foot = skeleton.index(f"{side}Foot")
+        toe_local = skeleton.offsets[skeleton.index(f"{side}ToeBase")].double().numpy()
+        toe_dir = toe_local / np.linalg.norm(toe_local)
+        # the heel below and behind the ankle: -0.06 along the foot frame's "down" (the
+        # component of -Y orthogonal to the foot bone), -0.04 along the bone
+        down = np.array([0.0, -1.0, 0.0]) - toe_dir * -toe_dir[1]
+        heel_local = 0.06 * down / np.linalg.norm(down) - 0.04 * toe_dir
+        heels.append(src[f"{side}Foot"] + fk.rotations[:, foot].numpy() @ heel_local)
+        toe_to_ankle, toe_to_heel = -toe_local, heel_local - toe_local
+        cos = toe_to_ankle @ toe_to_heel / np.linalg.norm(toe_to_ankle) / np.linalg.norm(
+            toe_to_heel
+        )
+        want[side] = np.arccos(cos)
+    with_heels = Markers(
+        [*markers.names, "LHeel", "RHeel"],
+        np.concatenate([markers.positions, np.stack(heels, 1)], 1),
+        markers.rate,
+        "m",
+    )
+    bvh = skeleton_bvh_from_markers(with_heels)
+    for side in ("Left", "Right"):
+        toe = bvh.offsets[bvh.names.index(f"{side}ToeBase")]
+        slope = np.arctan2(-toe[1], toe[2])
+        assert toe[0] == 0 and slope == pytest.approx(want[side], abs=1e-9), side
+        assert 0.2 < slope < 0.6
+    errors = _errors(bvh, with_heels)
+    assert max(float(errors[m].max()) for m in LEGS) < 1e-6
+    flat = skeleton_bvh_from_markers(markers).offsets[bvh.names.index("LeftToeBase")]
+    assert flat[1] == 0 and flat[2] > 0

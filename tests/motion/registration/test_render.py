@@ -1,5 +1,6 @@
-"""The overlay's pictures: the camera of resized frames against pixel-centre geometry, and
-upscaled overlays against the same picture drawn at the video's own size."""
+"""The overlay's pictures: the camera of resized frames against pixel-centre geometry,
+upscaled overlays against the same picture drawn at the video's own size, and the labels
+computed inside the body's box against the whole frame's."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import torch
 
 from motion.cameras import load_pose2sim_calibration, resized_rig
 from motion.registration.export import load_registration
-from motion.registration.render import body_poses, side_by_side_frames
+from motion.registration.render import _labels, body_poses, camera, side_by_side_frames
 from motion.registration.types import Reference
+from motion.render import label_map, project_parts
 from tests.motion.registration.conftest import REFERENCE
 
 
@@ -70,3 +72,25 @@ def test_an_upscaled_overlay_is_the_same_picture_drawn_bigger(register_run):
         assert differs.any() and (differs & ~outline).mean() < 0.01, (differs & ~outline).mean()
     # the two frames' pictures do differ (the test can fail): the body moved
     assert np.abs(small[0].astype(float) - small[1].astype(float)).mean(-1).__gt__(40).any()
+
+
+def test_labels_inside_the_bodys_box_are_the_whole_frames_label_map(register_run):
+    """The overlay's part labels are computed inside the box around the projected parts
+    only: the same map as label_map over every pixel, for bodies inside the image, half
+    outside it and wholly outside it."""
+    reg = load_registration(register_run.out / "registration.npz")
+    rig = camera(load_pose2sim_calibration(register_run.student.calibration), 0)
+    poses = body_poses(reg, Reference.from_bvh(REFERENCE))
+    w, h = (int(v) for v in rig.size[0].tolist())
+    segments = poses.segments("student")[[0, len(reg.C) // 2]]
+    sideways = segments.clone()
+    sideways[..., 0] += 0.6  # half out of the view (1.2 m wide about the body)
+    gone = segments.clone()
+    gone[..., 0] += 50.0
+    for segs in (segments, sideways, gone):
+        got = _labels(rig, segs, poses.radii, h, w)
+        parts = project_parts(rig, segs.to(rig.K), poses.radii.to(rig.K))
+        want = label_map(parts, h, w)[0][:, 0]
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert (_labels(rig, segments, poses.radii, h, w) >= 0).any()
+    assert (_labels(rig, gone, poses.radii, h, w) < 0).all()
