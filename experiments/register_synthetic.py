@@ -22,7 +22,10 @@ summary's largest differences ``motion register`` would state), ``findings_agree
 :data:`FINDING_AGREE_DEG`: the true difference of clinical angles, :mod:`motion.angles`, over
 the finding's frames, the student's true angle minus the reference's at the true C; NaN when
 none is stated) and ``findings_withheld_fraction`` (of the largest differences, the share not
-stated); ``sec_per_video_frame`` and per stage in timings.json.
+stated); ``angle_diff_err_deg_rms`` (per frame and coordinate, the estimated difference's
+error), ``angle_uncertainty_deg_rms`` (the uncertainty stated for it) and
+``angle_err_within_2u`` (how often the error is within twice it: ~0.95 for an honest
+uncertainty); ``sec_per_video_frame`` and per stage in timings.json.
 """
 
 from __future__ import annotations
@@ -255,6 +258,7 @@ def run(cfg: RegisterSyntheticConfig):
     findings = finding_agreement(
         summary.largest_differences, angles.time_s, truth_diff[:, keep], angles.coordinates
     )
+    findings |= angle_error_metrics(angles, truth_diff[:, keep], result.fit >= TRUSTED_FIT)
     c_err = (result.C - truth.C).abs().double()
     c_err1 = (result.C_stage1 - truth.C).abs().double()
     metrics = {
@@ -287,6 +291,13 @@ def run(cfg: RegisterSyntheticConfig):
         "silhouette_iou": result.fit.numpy(),
     }
     joint_names = [reference.skeleton.names[j] for j in driven]
+    for f in summary.largest_differences:  # what each finding says against the truth
+        true = true_mean(f, angles.time_s, truth_diff[:, keep], angles.coordinates)
+        agrees = "agrees" if _agrees(f, true) else "disagrees"
+        note(
+            f"finding ({'stated' if f['stated'] else 'withheld'}): {f['text']}; true "
+            f"{true:+.1f} degrees: {agrees}{'; ' + f['why'] if f['why'] else ''}"
+        )
     data = {"columns": columns, "joints": joint_names, "joint_err": a_err.mean(0).numpy()}
     return metrics, columns, data
 
@@ -305,6 +316,17 @@ def true_differences(reference: Reference, student: Reference | None, truth: Tru
     return torch.remainder(mine - theirs + 180.0, 360.0) - 180.0
 
 
+def true_mean(finding: dict, time_s: Tensor, truth: Tensor, names: list[str]) -> float:
+    """The true mean difference (degrees) over a finding's frames."""
+    frames = (time_s >= finding["start_s"] - 1e-9) & (time_s <= finding["end_s"] + 1e-9)
+    return float(truth[frames, names.index(finding["coordinate"])].mean())
+
+
+def _agrees(finding: dict, true: float) -> bool:
+    est = float(finding["mean_difference_deg"])
+    return bool(np.sign(est) == np.sign(true) and abs(est - true) <= FINDING_AGREE_DEG)
+
+
 def finding_agreement(
     findings: list[dict], time_s: Tensor, truth: Tensor, names: list[str]
 ) -> dict[str, float]:
@@ -320,19 +342,29 @@ def finding_agreement(
         ``findings_withheld_fraction`` (NaN when there is no finding at all).
     """
     stated = [f for f in findings if f["stated"]]
-    agree = 0
-    for f in stated:
-        frames = (time_s >= f["start_s"] - 1e-9) & (time_s <= f["end_s"] + 1e-9)
-        true = float(truth[frames, names.index(f["coordinate"])].mean())
-        est = float(f["mean_difference_deg"])
-        agree += int(
-            np.sign(est) == np.sign(true) and abs(est - true) <= FINDING_AGREE_DEG
-        )
+    agree = sum(int(_agrees(f, true_mean(f, time_s, truth, names))) for f in stated)
     return {
         "findings_stated": float(len(stated)),
         "findings_agree_fraction": agree / len(stated) if stated else math.nan,
         "findings_withheld_fraction": (1 - len(stated) / len(findings) if findings else math.nan),
     }
+
+
+def angle_error_metrics(angles, truth: Tensor, trusted: Tensor) -> dict[str, float]:
+    """How well the per-frame differences and their uncertainty match the truth, over the
+    trusted frames and every coordinate: ``angle_diff_err_deg_rms`` (RMS of estimated minus
+    true difference, degrees), ``angle_uncertainty_deg_rms`` (RMS of the stated
+    uncertainty) and ``angle_err_within_2u`` (the share of errors within twice their
+    uncertainty: about 0.95 if the uncertainty were honest and normal; NaN without one)."""
+    err = (angles.difference_deg - truth)[trusted]
+    out = {"angle_diff_err_deg_rms": float(err.square().mean().sqrt())}
+    if angles.uncertainty_deg is None:
+        return out | {"angle_uncertainty_deg_rms": math.nan, "angle_err_within_2u": math.nan}
+    u = angles.uncertainty_deg[trusted]
+    ok = torch.isfinite(u)
+    out["angle_uncertainty_deg_rms"] = float(u[ok].square().mean().sqrt())
+    out["angle_err_within_2u"] = float((err[ok].abs() <= 2 * u[ok]).double().mean())
+    return out
 
 
 def _first(video, truth: Truth, n: int):

@@ -38,6 +38,7 @@ __all__ = [
     "clinical_angles",
     "coordinate_chain",
     "coordinate_joints",
+    "coordinate_segments",
     "describe_coordinate",
 ]
 
@@ -213,7 +214,9 @@ def _coordinate(name: str) -> _Coordinate:
     raise ValueError(f"unknown coordinate {name!r}; expected one of {COORDINATES}")
 
 
-def _segment_joints(skeleton: Skeleton, name: str, segments: SegmentMap) -> tuple[int, int]:
+def coordinate_segments(
+    skeleton: Skeleton, name: str, segments: SegmentMap = CMU_SEGMENTS
+) -> tuple[int, int]:
     """The skeleton indices of the joints turning a coordinate's parent and child segments."""
     c = _coordinate(name)
     side = 1 if name.endswith("_l") else 0
@@ -228,7 +231,7 @@ def coordinate_joints(
     """The joints a coordinate rests on: the joint of each of its two segments and that
     joint's children (each segment's bones), as skeleton indices in skeleton order; a
     coordinate is only as good as these joints are seen."""
-    ends = set(_segment_joints(skeleton, name, segments))
+    ends = set(coordinate_segments(skeleton, name, segments))
     parents = skeleton.parents.tolist()
     return sorted(ends | {k for k, p in enumerate(parents) if p in ends})
 
@@ -242,7 +245,7 @@ def coordinate_chain(
     Raises:
         ValueError: when the child segment's joint is not below the parent's.
     """
-    top, j = _segment_joints(skeleton, name, segments)
+    top, j = coordinate_segments(skeleton, name, segments)
     chain = []
     while j >= 0 and j != top:
         chain.append(j)

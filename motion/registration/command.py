@@ -270,7 +270,14 @@ def _write_outputs(
         reg.C, reg.T_translation, reference.root, reference.frame_rate, rate, reg.G, cfg.movement
     )
     summary = summarise(
-        reg, reference, angles, rate, settings_dict(cfg), trusted=trusted, movement=movement
+        reg,
+        reference,
+        angles,
+        rate,
+        settings_dict(cfg),
+        trusted=trusted,
+        movement=movement,
+        findings=cfg.findings,
     )
     files = {}
     files["registration.npz"] = save_registration(reg, stage / "registration.npz")
@@ -413,6 +420,8 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
     if stated:
         lines.append("  largest joint differences:")
         lines += [f"    {d['text']}" for d in stated[:3]]
+    withheld = [d for d in s.largest_differences if not d["stated"]] if s.motions_match else []
+    lines += [f"  not stated: {d['text']} ({d['why']})" for d in withheld]
     out = next(iter(outcome.files.values())).parent
     lines.append(
         f"  wrote {len(outcome.files)} files to {out}: report {outcome.files['report.html']}"

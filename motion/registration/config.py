@@ -23,6 +23,7 @@ from pathlib import Path
 
 import yaml
 
+from motion.registration.export import FindingSettings
 from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
 from motion.registration.video import VideoSettings
@@ -43,11 +44,13 @@ class RegisterConfig:
         registration: the pipeline's settings (stages 1-3, G, seed).
         movement: when the student counts as performing another movement than the
             reference's (:class:`MovementSettings`).
+        findings: when one of the largest differences is stated (:class:`FindingSettings`).
     """
 
     video: VideoSettings = field(default_factory=VideoSettings)
     registration: RegistrationSettings = field(default_factory=RegistrationSettings)
     movement: MovementSettings = field(default_factory=MovementSettings)
+    findings: FindingSettings = field(default_factory=FindingSettings)
 
 
 def _flatten(values: Mapping, prefix: str = "") -> dict[str, object]:

@@ -41,6 +41,7 @@ from motion.angles import (
     clinical_angles,
     coordinate_chain,
     coordinate_joints,
+    coordinate_segments,
     describe_coordinate,
 )
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
@@ -49,6 +50,7 @@ from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
 
 __all__ = [
+    "FindingSettings",
     "JointAngles",
     "JointDifference",
     "RegistrationSummary",
@@ -213,6 +215,10 @@ class JointAngles:
         articulation_deg: ``(T', K')`` float64 the angle of the rotation between the
             reference's and the student's joint (the whole change at the coordinate's joint,
             twist included; the three coordinates of a joint share it), degrees.
+        uncertainty_deg: ``(T', K')`` float64 the inference's uncertainty of the student's
+            angle, degrees: the orientation spreads of the two segments' body parts
+            (:attr:`Registration.part_spread_deg`) added in quadrature; ``None`` when the
+            registration did not measure them.
         first_frame, frame_step: frame ``t'`` is frame ``first_frame + t' frame_step`` of
             the source video (0-based).
     """
@@ -223,6 +229,7 @@ class JointAngles:
     student_deg: Tensor
     difference_deg: Tensor
     articulation_deg: Tensor
+    uncertainty_deg: Tensor | None = None
     first_frame: int = 0
     frame_step: int = 1
 
@@ -297,6 +304,41 @@ def _estimated_coordinates(reference: Reference, segments: SegmentMap) -> list[b
     ]
 
 
+def _part_of(reference: Reference, joint: int) -> int:
+    """The body part that turns with ``joint``: the part whose frame joint is ``joint`` or
+    its nearest ancestor (CMU's Spine1 moves with the torso part, framed by Spine)."""
+    frames = reference.spec.frame_joints.tolist()
+    j = joint
+    while j >= 0:
+        if j in frames:
+            return frames.index(j)
+        j = int(reference.skeleton.parents[j])
+    raise RegistrationError(f"{reference.name}: no body part moves joint {joint}")
+
+
+def _angle_uncertainty(
+    reg: Registration, reference: Reference, segments: SegmentMap, names: list[str]
+) -> Tensor | None:
+    """``(T', K')`` degrees: per coordinate, the part spreads of its two segments added in
+    quadrature (independent marginals); ``None`` without spreads."""
+    spread = reg.part_spread_deg
+    if spread.numel() == 0:
+        return None
+    if spread.shape != (reg.num_frames, reference.spec.num_parts):
+        raise RegistrationError(
+            f"part_spread_deg must be ({reg.num_frames}, {reference.spec.num_parts}); got "
+            f"{tuple(spread.shape)}"
+        )
+    spread = spread.to(F64)
+    columns = []
+    for name in names:
+        pair = [
+            _part_of(reference, j) for j in coordinate_segments(reference.skeleton, name, segments)
+        ]
+        columns.append(spread[:, pair].square().sum(-1).sqrt())
+    return torch.stack(columns, 1)
+
+
 def _rotation_angle_deg(rotation: Tensor) -> Tensor:
     """``(...,)`` the angle of rotations ``(..., 3, 3)``, degrees in [0, 180] (from the
     skew part and the trace: accurate near 0 and near 180)."""
@@ -342,13 +384,15 @@ def joint_angles(
     keep = torch.tensor(_estimated_coordinates(reference, segments)).nonzero().flatten()
     difference = stu.degrees[:, keep] - ref.degrees[:, keep]
     change = ref.joint_rotations[:, keep].transpose(-1, -2) @ stu.joint_rotations[:, keep]
+    names = [COORDINATES[i] for i in keep.tolist()]
     return JointAngles(
-        coordinates=[COORDINATES[i] for i in keep.tolist()],
+        coordinates=names,
         time_s=(first_frame / frame_step + torch.arange(reg.num_frames, dtype=F64)) / frame_rate,
         reference_deg=ref.degrees[:, keep],
         student_deg=stu.degrees[:, keep],
         difference_deg=torch.remainder(difference + 180.0, 360.0) - 180.0,
         articulation_deg=_rotation_angle_deg(change),
+        uncertainty_deg=_angle_uncertainty(reg, reference, segments, names),
         first_frame=first_frame,
         frame_step=frame_step,
     )
@@ -372,6 +416,11 @@ class JointDifference:
         start_s: video time of the run's first frame, seconds.
         end_s: video time of the run's last frame, seconds.
         mean_abs_deg: mean ``|student - reference|`` over all frames (the ranking), degrees.
+        uncertainty_deg: the inference's uncertainty of the difference over the run (the
+            RMS of :attr:`JointAngles.uncertainty_deg` there; not divided by the run's
+            length, as neighbouring frames' errors go together), degrees; NaN when not
+            measured.
+        frames: the run's trusted frames.
     """
 
     coordinate: str
@@ -379,16 +428,22 @@ class JointDifference:
     start_s: float
     end_s: float
     mean_abs_deg: float
+    uncertainty_deg: float = math.nan
+    frames: int = 0
 
     @property
     def text(self) -> str:
-        """One sentence, e.g. ``"Left knee flexes 18 degrees less than the reference between
-        1.20 s and 1.60 s"`` (:func:`motion.angles.describe_coordinate`'s words)."""
+        """One sentence, e.g. ``"Left knee flexes 18 ± 4 degrees less than the reference
+        between 1.20 s and 1.60 s"`` (:func:`motion.angles.describe_coordinate`'s words; no
+        ``±`` when the uncertainty is not measured)."""
         words = describe_coordinate(self.coordinate)
         name = words.joint[:1].upper() + words.joint[1:]
         size = abs(self.mean_difference_deg)
         amount = f"{size:.0f}" if size >= 1 else f"{size:.1f}"
         unit = "degree" if amount == "1" else "degrees"
+        if math.isfinite(self.uncertainty_deg):
+            u = self.uncertainty_deg
+            unit = f"± {u:.0f} degrees" if u >= 1 else f"± {u:.1f} degrees"
         more = "more" if self.mean_difference_deg > 0 else "less"
         when = (
             f"at {self.start_s:.2f} s"
@@ -481,6 +536,7 @@ def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDiffer
         key=lambda i: (-mean_abs[angles.coordinates[i]], angles.coordinates[i]),
     )
     diff = angles.difference_deg.detach().cpu().numpy()
+    spread = None if angles.uncertainty_deg is None else angles.uncertainty_deg.cpu().numpy()
     time_s = angles.time_s.tolist()
     out = []
     for i in order:
@@ -489,6 +545,7 @@ def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDiffer
             continue
         first, last = run
         name = angles.coordinates[i]
+        here = None if spread is None else spread[first : last + 1, i]
         out.append(
             JointDifference(
                 name,
@@ -496,11 +553,61 @@ def largest_differences(angles: JointAngles, count: int = 3) -> list[JointDiffer
                 time_s[first],
                 time_s[last],
                 mean_abs[name],
+                _rms(here),
+                last - first + 1,
             )
         )
         if len(out) == count:
             break
     return out
+
+
+def _rms(values: np.ndarray | None) -> float:
+    """RMS of the finite values, NaN when there are none (or no values at all)."""
+    if values is None or not np.isfinite(values).any():
+        return math.nan
+    return float(np.sqrt(np.nanmean(np.square(values))))
+
+
+@dataclass(frozen=True)
+class FindingSettings:
+    """When one of the largest differences is stated as a finding (``findings.*`` of
+    ``motion register``).
+
+    Attributes:
+        interval_z: a finding's interval is its mean difference ``± interval_z`` times its
+            uncertainty (:attr:`JointDifference.uncertainty_deg`); one whose interval holds
+            0 is not stated (2: about 95 % for a normal error).
+        min_trusted_s: a finding needs at least this many seconds of trusted frames (the
+            running median's width, :data:`SMOOTH_S`, by default: a shorter run is a jitter
+            the median let through).
+    """
+
+    interval_z: float = 2.0
+    min_trusted_s: float = SMOOTH_S
+
+    def __post_init__(self):
+        if not (self.interval_z >= 0 and self.min_trusted_s >= 0):
+            raise ValueError(
+                f"interval_z and min_trusted_s must be >= 0; got {self.interval_z}, "
+                f"{self.min_trusted_s}"
+            )
+
+    def why_not(self, finding: JointDifference, frame_rate: float) -> str:
+        """Why ``finding`` is not stated ("" when it is)."""
+        needed = math.ceil(self.min_trusted_s * frame_rate - 1e-9)
+        if finding.frames < needed:
+            return (
+                f"only {finding.frames} trusted frame(s) show it; at least {needed} "
+                f"({self.min_trusted_s:g} s) expected"
+            )
+        spread = self.interval_z * finding.uncertainty_deg
+        if math.isfinite(spread) and abs(finding.mean_difference_deg) <= spread:
+            return (
+                f"its interval ({finding.mean_difference_deg:+.0f} ± {spread:.0f} degrees) "
+                "holds 0: the inference cannot tell it from no difference"
+            )
+        return ""
 
 
 def _num(x: float) -> str:
@@ -909,6 +1016,7 @@ def summarise(
     count: int = 3,
     trusted: Tensor | None = None,
     movement: MovementCheck | None = None,
+    findings: FindingSettings | None = None,
 ) -> RegistrationSummary:
     """The run in one record (:class:`RegistrationSummary`).
 
@@ -925,9 +1033,17 @@ def summarise(
         movement: the movement check (``None``: taken as matching, with no evidence);
             its reasons come first in :attr:`RegistrationSummary.warnings`, then
             ``reg.warnings``.
+        findings: when a largest difference is stated (:class:`FindingSettings`); every
+            difference is withheld when the movements do not match.
     """
     matches = movement is None or movement.motions_match
-    why = "" if matches else "the student does not perform the reference's movement"
+    rules = findings or FindingSettings()
+
+    def why(d: JointDifference) -> str:
+        if not matches:
+            return "the student does not perform the reference's movement"
+        return rules.why_not(d, frame_rate)
+
     if trusted is None:
         trusted = reg.fit >= TRUSTED_FIT
     frame_rate = _check_rate(frame_rate)
@@ -958,7 +1074,7 @@ def summarise(
             k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
         },
         largest_differences=[
-            {**d.to_dict(), "stated": matches, "why": why}
+            {**d.to_dict(), "stated": not why(d), "why": why(d)}
             for d in sorted(
                 largest_differences(trusted_angles(angles, trusted), count),
                 key=lambda d: -abs(d.mean_difference_deg),

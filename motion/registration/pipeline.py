@@ -239,4 +239,5 @@ def register(
         timings=timings,
         notes=notes,
         warnings=warnings,
+        part_spread_deg=refined.part_spread_deg,
     )

@@ -249,8 +249,11 @@ class RefineResult:
     rotations: ``(T', J, 3, 3)`` local (root's = T's rotation); translation: ``(T', 3)``
     root position, metres; rounds: stage 3 rounds run; c_changes: frames whose C changed in
     each round; particle_poses: ``(T', P, 7)`` particle BP's own estimate of each part
-    (free parts, before the skeleton fit and the smoothing), for diagnostics; warnings:
-    sentences naming frames where BP found no finite posture (they keep their start)."""
+    (free parts, before the skeleton fit and the smoothing), for diagnostics;
+    part_spread_deg: ``(T', P)`` how far each part's final particle marginal lets its
+    orientation go (:func:`rotation_spread_deg`, the last round's; NaN where BP found no
+    finite posture); warnings: sentences naming frames where BP found no finite posture
+    (they keep their start)."""
 
     poses: Tensor
     C: Tensor
@@ -259,6 +262,7 @@ class RefineResult:
     rounds: int
     c_changes: list[int]
     particle_poses: Tensor
+    part_spread_deg: Tensor
     warnings: list[str] = field(default_factory=list)
 
 
@@ -401,9 +405,10 @@ def _run_window(
     translation: Tensor,
     couple: bool,
     generator: torch.Generator,
-) -> tuple[Tensor, Tensor]:
-    """One particle BP run over a window. Returns part poses ``(n, P, 7)`` and C ``(n,)``
-    (unchanged without ``couple``)."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One particle BP run over a window. Returns part poses ``(n, P, 7)``, C ``(n,)``
+    (unchanged without ``couple``) and each part's orientation spread ``(n, P)`` degrees
+    (:func:`rotation_spread_deg`)."""
     s = problem.settings
     spec = problem.reference.spec
     p = spec.num_parts
@@ -459,10 +464,35 @@ def _run_window(
         proposal_centres=min(30, k),
     )
     poses = result.best[0, :v_body].reshape(n, p, 7)
+    spread = rotation_spread_deg(
+        result.particles[0, :v_body], result.log_weights[0, :v_body], result.best[0, :v_body]
+    ).reshape(n, p)
     if not couple:
-        return poses, c
+        return poses, c, spread
     chosen = result.best[0, v_body:, 0].round().long()
-    return poses, states.gather(1, chosen[:, None]).squeeze(1)
+    return poses, states.gather(1, chosen[:, None]).squeeze(1), spread
+
+
+def rotation_spread_deg(particles: Tensor, log_weights: Tensor, best: Tensor) -> Tensor:
+    """The weighted RMS rotation angle of pose particles about the chosen one: how far a
+    node's particle marginal lets its orientation go, the inference's own uncertainty of
+    it (degrees).
+
+    Args:
+        particles: ``(..., K, 7)`` poses ``(x, y, z, qw, qx, qy, qz)``.
+        log_weights: ``(..., K)`` normalised log marginal weights (``-inf``: none).
+        best: ``(..., 7)`` the chosen pose.
+
+    Returns:
+        ``(...,)`` degrees; NaN where no particle has a finite weight.
+    """
+    cos = (particles[..., 3:] * best[..., None, 3:]).sum(-1).abs().clamp(max=1.0)
+    angle = 2.0 * torch.acos(cos)  # (..., K) radians, q and -q alike
+    finite = torch.isfinite(log_weights)
+    weights = torch.softmax(torch.where(finite, log_weights, -torch.inf), -1)
+    mean_square = (torch.where(finite, weights * angle**2, 0.0)).sum(-1)
+    spread = torch.rad2deg(mean_square.sqrt())
+    return torch.where(finite.any(-1), spread, torch.full_like(spread, math.nan))
 
 
 def _kinematic_edges(problem: _Problem, reference: Tensor) -> tuple[Tensor, RigidConnection]:
@@ -650,6 +680,7 @@ def refine(
     wrap = progress or (lambda items, desc, total: items)
     c = c.clone()
     poses = torch.zeros(t, reference.spec.num_parts, 7)
+    spread = torch.full((t, reference.spec.num_parts), math.nan)
     changes: list[int] = []
     lost: set[int] = set()  # frames where BP found no finite posture
     rounds = 1 + (s.rounds if s.refine_c else 0)
@@ -659,12 +690,16 @@ def refine(
         label = "stage 2 (T, A)" if not couple else f"stage 3 (C) round {r}"
         for i in wrap(range(len(starts)), label, len(starts)):
             sl = slice(starts[i], min(t, starts[i] + s.window))
-            est, c_win = _run_window(problem, sl, c[sl], rotation[sl], translation[sl], couple, g)
+            est, c_win, sd = _run_window(
+                problem, sl, c[sl], rotation[sl], translation[sl], couple, g
+            )
+            sd = torch.where(torch.isfinite(est).all(-1), sd, math.nan)  # lost: no marginal
             est, c_win = _keep_start_where_lost(
                 problem, est, c_win, c[sl], rotation[sl], translation[sl], sl.start, lost
             )
             mine = owner[sl] == i
             poses[sl][mine] = est[mine]
+            spread[sl][mine] = sd[mine].to(spread)
             new_c[sl][mine] = c_win[mine]
         if s.reanchor:
             local, root = _fit(problem, poses, new_c)
@@ -687,7 +722,7 @@ def refine(
             "frame): particle BP found no finite posture there (every hypothesis of a part "
             "was impossible); they keep stage 1's posture"
         )
-    return RefineResult(skeleton, c, local, root, rounds, changes, poses, warnings)
+    return RefineResult(skeleton, c, local, root, rounds, changes, poses, spread, warnings)
 
 
 def _keep_start_where_lost(

@@ -309,6 +309,8 @@ def render_report(inputs: ReportInputs) -> str:
         heatmap=heatmap_figure(inputs),
         fit_plot=fit_figure(inputs),
         key_frames=_key_frame_pictures(inputs, key_frames(inputs)),
+        stated=[d for d in s.largest_differences if d["stated"]],
+        withheld=[d for d in s.largest_differences if not d["stated"]],
         per_joint=[(describe_coordinate(n).label, n, f"{deg:.1f}") for n, deg in per_joint],
         timings=[(k, f"{v:.1f}") for k, v in s.timings.items()],
         notes=sorted(s.notes.items()),

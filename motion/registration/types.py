@@ -259,6 +259,10 @@ class Registration:
         notes: what was estimated and how (e.g. the body scale's source), for reports.
         warnings: sentences for the user about what the result cannot be trusted for
             (e.g. frames whose transform had to be carried over from their neighbours).
+        part_spread_deg: ``(T', P)`` per body part (the spec's order), how far stages
+            2-3's particle marginal lets its orientation go, degrees (the inference's own
+            uncertainty: :func:`motion.registration.refine.rotation_spread_deg`; NaN where
+            BP found no posture); empty ``(0, 0)`` when not measured.
     """
 
     C: Tensor
@@ -272,6 +276,7 @@ class Registration:
     timings: dict[str, float] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    part_spread_deg: Tensor = field(default_factory=lambda: torch.empty(0, 0))
 
     @property
     def num_frames(self) -> int:

@@ -5,19 +5,23 @@ against the true differences over their own frames."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
+import pytest
 import torch
 
 from experiments.register_synthetic import (
     Truth,
     _bone_directions,
     _swing_error_deg,
+    angle_error_metrics,
     finding_agreement,
     true_correspondence,
     true_differences,
 )
 from motion.registration import Reference
+from motion.registration.export import JointAngles
 from motion.synth import time_warp
 from tests.motion.body.conftest import WALK
 
@@ -90,3 +94,27 @@ def test_true_differences_of_the_reference_against_itself_are_zero():
     shown = torch.arange(0, 40, 2)
     truth = Truth(shown, None, None, ref.rotations[shown], None, 1.7)
     assert true_differences(ref, None, truth).abs().max() < 1e-9
+
+
+def test_angle_error_metrics_measure_the_error_and_how_often_the_uncertainty_covers_it():
+    """Errors 1, -3 (twice) and 5 degrees against uncertainties of 1: RMS sqrt(44 / 4), one
+    of four within 2u; an untrusted frame with a huge error is left out."""
+    diff = torch.tensor([[1.0, -3.0], [-3.0, 5.0], [90.0, 90.0]], dtype=torch.float64)
+    angles = JointAngles(
+        ["knee_angle_l", "elbow_flex_r"],
+        torch.arange(3, dtype=torch.float64),
+        torch.zeros(3, 2, dtype=torch.float64),
+        diff,
+        diff,
+        diff.abs(),
+        uncertainty_deg=torch.ones(3, 2, dtype=torch.float64),
+    )
+    trusted = torch.tensor([True, True, False])
+    got = angle_error_metrics(angles, torch.zeros(3, 2, dtype=torch.float64), trusted)
+    assert got["angle_diff_err_deg_rms"] == pytest.approx(math.sqrt(44 / 4))
+    assert got["angle_uncertainty_deg_rms"] == pytest.approx(1.0)
+    assert got["angle_err_within_2u"] == pytest.approx(0.25)
+    plain = angle_error_metrics(
+        dataclasses.replace(angles, uncertainty_deg=None), torch.zeros(3, 2), trusted
+    )
+    assert math.isnan(plain["angle_err_within_2u"])

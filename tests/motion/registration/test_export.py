@@ -18,7 +18,10 @@ from motion.bvh import BVH, read_bvh, write_bvh
 from motion.kinematics import Skeleton, euler_to_matrix, forward_kinematics, local_rotations
 from motion.registration.export import (
     TRUSTED_FIT,
+    FindingSettings,
     JointAngles,
+    JointDifference,
+    _jsonable,
     bvh_from_rotations,
     end_site_positions,
     joint_angles,
@@ -584,7 +587,7 @@ def test_summary_speed_offset_and_json(reference):
     assert torch.isnan(trusted.difference_deg[3]).all()  # fit NaN: not trusted
     found = sorted(largest_differences(trusted, 3), key=lambda d: -abs(d.mean_difference_deg))
     assert record["largest_differences"] == [
-        {**d.to_dict(), "stated": True, "why": ""} for d in found
+        _jsonable({**d.to_dict(), "stated": True, "why": ""}) for d in found
     ]
     assert record["largest_differences"][0]["text"] == (
         "Left knee flexes 12 degrees more than the reference between 0.13 s and 1.30 s"
@@ -625,3 +628,65 @@ def test_trusted_angles_drop_untrusted_frames_and_one_frame_spikes():
     assert torch.isnan(d[35:]).all() and torch.isfinite(d[:35]).all()
     (found,) = largest_differences(out, 1)
     assert (found.start_s, found.end_s) == (20 / 25, 29 / 25)
+
+
+def test_angle_uncertainty_adds_the_two_segments_part_spreads_in_quadrature(reference):
+    """The knee's uncertainty is that of the thigh and the shin parts added in quadrature,
+    the lower back's that of the pelvis and the torso (Spine1 moves with the torso part,
+    framed by Spine); without spreads there is none, and a spread of another shape is an
+    error naming both."""
+    reg = make_registration(reference, num_frames=6)
+    assert joint_angles(reg, reference, 30.0).uncertainty_deg is None
+    spec = reference.spec
+    part = {reference.skeleton.names[int(j)]: p for p, j in enumerate(spec.frame_joints)}
+    spread = torch.arange(1.0, 1.0 + spec.num_parts)[None].repeat(6, 1)
+    reg.part_spread_deg = spread
+    angles = joint_angles(reg, reference, 30.0)
+    knee = angles.uncertainty_deg[:, angles.coordinates.index("knee_angle_l")]
+    thigh, shin = spread[0, part["LeftUpLeg"]], spread[0, part["LeftLeg"]]
+    torch.testing.assert_close(knee, torch.full((6,), float(math.hypot(thigh, shin)), dtype=F64))
+    back = angles.uncertainty_deg[0, angles.coordinates.index("lumbar_extension")]
+    pelvis, torso = spread[0, part["Hips"]], spread[0, part["Spine"]]
+    assert float(back) == pytest.approx(math.hypot(pelvis, torso))
+    reg.part_spread_deg = spread[:, :3]
+    with pytest.raises(RegistrationError, match=r"part_spread_deg must be \(6, 15\); got \(6, 3\)"):
+        joint_angles(reg, reference, 30.0)
+
+
+def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_zero():
+    """Each rule alone withholds a finding and says why; the sentence carries the
+    uncertainty when there is one."""
+    rules = FindingSettings(interval_z=2.0, min_trusted_s=0.2)
+    sure = JointDifference("knee_angle_l", -12.0, 1.0, 1.5, 6.0, uncertainty_deg=3.0, frames=13)
+    assert rules.why_not(sure, 25.0) == ""
+    assert sure.text == (
+        "Left knee flexes 12 ± 3 degrees less than the reference between 1.00 s and 1.50 s"
+    )
+    vague = dataclasses.replace(sure, uncertainty_deg=7.0)  # -12 +- 14 holds 0
+    assert rules.why_not(vague, 25.0) == (
+        "its interval (-12 ± 14 degrees) holds 0: the inference cannot tell it from no difference"
+    )
+    short = dataclasses.replace(sure, frames=4)  # 0.2 s at 25 Hz: 5 frames
+    assert rules.why_not(short, 25.0).startswith("only 4 trusted frame(s) show it; at least 5")
+    unmeasured = dataclasses.replace(sure, uncertainty_deg=math.nan)
+    assert rules.why_not(unmeasured, 25.0) == "" and "±" not in unmeasured.text
+    with pytest.raises(ValueError, match="interval_z and min_trusted_s must be >= 0"):
+        FindingSettings(interval_z=-1.0)
+
+
+def test_summary_withholds_the_findings_the_inference_cannot_tell_from_zero(reference):
+    """The knee flexes 12 degrees more; with part spreads of 1 degree it is stated with its
+    interval, with spreads of 10 degrees (14 on the knee) it is kept but not stated."""
+    t = 40
+    reg = make_registration(reference, num_frames=t)
+    reg.C = 5 + 3 * torch.arange(t)
+    bend = flex_articulation(reference, reg.C, "LeftLeg", -12.0)
+    reg.rotations = reference.rotations[reg.C] @ bend
+    reg.fit = torch.ones(t)
+    for spread, stated in ((1.0, True), (10.0, False)):
+        reg.part_spread_deg = torch.full((t, reference.spec.num_parts), spread)
+        angles = joint_angles(reg, reference, 30.0)
+        top = summarise(reg, reference, angles, 30.0, {}).largest_differences[0]
+        assert top["coordinate"] == "knee_angle_l" and top["stated"] is stated
+        assert top["uncertainty_deg"] == pytest.approx(math.hypot(spread, spread))
+        assert ("holds 0" in top["why"]) is not stated

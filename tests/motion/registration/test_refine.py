@@ -25,6 +25,7 @@ from motion.registration.refine import (
     part_keypoints,
     place_poses,
     refine,
+    rotation_spread_deg,
     smooth_posture,
 )
 from motion.registration.types import Reference, RegistrationError, scaled_spec
@@ -343,11 +344,11 @@ def test_frames_where_bp_finds_no_finite_posture_keep_their_start(student, monke
     run_window = refine_module._run_window
 
     def losing(problem, frames, *args):
-        est, c_win = run_window(problem, frames, *args)
+        est, c_win, spread = run_window(problem, frames, *args)
         if frames.start == 0:
             est = est.clone()
             est[2, 5, 0] = float("nan")
-        return est, c_win
+        return est, c_win, spread
 
     monkeypatch.setattr(refine_module, "_run_window", losing)
     s = RefineSettings(particles=20, iterations=2, restarts=1, refine_c=False, smooth_s=0.0)
@@ -357,3 +358,26 @@ def test_frames_where_bp_finds_no_finite_posture_keep_their_start(student, monke
     torch.testing.assert_close(res.particle_poses[2], start.to(res.particle_poses))
     assert torch.isfinite(res.poses).all() and torch.isfinite(res.rotations).all()
     assert len(res.warnings) == 1 and res.warnings[0].startswith("video frames 2 ")
+    # the lost part has no marginal to measure; the others do
+    assert math.isnan(res.part_spread_deg[2, 5]) and torch.isfinite(res.part_spread_deg[3]).all()
+
+
+def test_rotation_spread_is_the_weighted_rms_angle_about_the_chosen_pose():
+    """Particles turned 0, 10 and 30 degrees about the chosen pose (one of them as -q, the
+    same rotation), weights 1/2, 1/4, 1/4: the spread is sqrt((0 + 100 + 900) / 4) degrees
+    whatever the positions; a node without a finite weight has none (NaN)."""
+    best = torch.tensor([0.3, 1.0, -2.0, 1.0, 0.0, 0.0, 0.0])
+
+    def turned(deg, sign=1.0):
+        half = math.radians(deg) / 2
+        q = sign * torch.tensor([math.cos(half), 0.0, math.sin(half), 0.0])
+        return torch.cat([torch.randn(3), q])
+
+    particles = torch.stack([turned(0), turned(10, -1.0), turned(30)])[None]  # (1, 3, 7)
+    log_w = torch.log(torch.tensor([[0.5, 0.25, 0.25]]))
+    got = rotation_spread_deg(particles, log_w, best[None])
+    assert float(got) == pytest.approx(math.sqrt((100 + 900) / 4), abs=1e-3)
+    none = rotation_spread_deg(particles, torch.full((1, 3), -math.inf), best[None])
+    assert math.isnan(float(none))
+    padded = torch.log(torch.tensor([[1.0, 0.0, 0.0]]))  # -inf padding: only the first
+    assert float(rotation_spread_deg(particles, padded, best[None])) == pytest.approx(0, abs=1e-3)
