@@ -35,6 +35,7 @@ from motion.draw import write_video
 from motion.registration.config import RegisterConfig, load_config, settings_dict
 from motion.registration.export import (
     TRUSTED_FIT,
+    RegistrationSummary,
     joint_angles,
     joints_trusted,
     save_registration,
@@ -395,6 +396,12 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
     return RegisterOutcome(reg, summary, _publish(stage, job.out, files))
 
 
+def _size_words(s: RegistrationSummary) -> str:
+    if s.G_measured:
+        return f"body size G {s.G:.3f}"
+    return "body size not measured (one perspective camera cannot tell it from depth)"
+
+
 def summary_lines(outcome: RegisterOutcome) -> list[str]:
     """The one-screen summary printed at the end."""
     s = outcome.summary
@@ -405,7 +412,7 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
         f"  starts at {s.reference_start_s:.2f} s of the reference (video {s.video_start_s:.2f}"
         f" s, frame {s.video_frames[0]}); speed ratio {s.speed_ratio:.2f} (reference seconds "
         "per video second)",
-        f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; body size G {s.G:.3f}",
+        f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; {_size_words(s)}",
     ]
     reasons = s.movement.get("reasons", [])  # first among the warnings
     if not s.motions_match:

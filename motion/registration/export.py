@@ -910,6 +910,8 @@ def load_registration(path: str | Path) -> Registration:
                 values[f.name] = json.loads(str(arr))
             elif arr.ndim == 0 and f.type in ("float", float):
                 values[f.name] = float(arr)
+            elif arr.ndim == 0 and f.type in ("bool", bool):
+                values[f.name] = bool(arr)
             else:
                 values[f.name] = torch.from_numpy(arr.copy())
     return Registration(**values)
@@ -941,6 +943,8 @@ class RegistrationSummary:
             ``C(t') ~ a + b t'`` times ``video_rate_hz / reference_rate_hz`` (``None`` with
             one frame).
         G: body scale.
+        G_measured: whether G was measured (``False``: 1 because one perspective camera
+            cannot tell body size from depth; "not measured" to a user).
         silhouette_iou_mean: mean of :attr:`fit` (``None`` when it has no finite value).
         fit: ``T'`` per-frame silhouette IoU.
         per_joint_mean_abs_deg: mean ``|student - reference|`` per clinical coordinate
@@ -980,6 +984,7 @@ class RegistrationSummary:
     motions_match: bool = True
     warnings: list[str] = field(default_factory=list)
     movement: dict = field(default_factory=dict)
+    G_measured: bool = True
 
     def to_json(self, indent: int | None = 2) -> str:
         """The summary as strict JSON text: NaN and infinities as ``null``; paths, tensors,
@@ -1068,6 +1073,7 @@ def summarise(
         reference_start_s=c[0] / reference.frame_rate,
         speed_ratio=speed,
         G=float(reg.G),
+        G_measured=bool(reg.G_measured),
         silhouette_iou_mean=sum(finite) / len(finite) if finite else None,
         fit=[_finite_or_none(x) for x in fit],
         per_joint_mean_abs_deg={

@@ -31,6 +31,7 @@ from motion.body.observation import PartShapes, body_layers
 from motion.cameras import CameraRig
 from motion.registration.approximate import (
     Stage1Result,
+    SCALE_NOT_ESTIMATED,
     Stage1Settings,
     approximate_registration,
     estimate_body_scale,
@@ -239,5 +240,6 @@ def register(
         timings=timings,
         notes=notes,
         warnings=warnings,
+        G_measured=not notes["G"].startswith(SCALE_NOT_ESTIMATED),
         part_spread_deg=refined.part_spread_deg,
     )

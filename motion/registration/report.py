@@ -28,7 +28,6 @@ import matplotlib.pyplot as plt
 
 from motion.angles import describe_coordinate
 from motion.cameras import CameraRig
-from motion.registration.approximate import SCALE_NOT_ESTIMATED
 from motion.registration.export import (
     TRUSTED_FIT,
     JointAngles,
@@ -295,7 +294,7 @@ def render_report(inputs: ReportInputs) -> str:
         start_s=f"{s.reference_start_s:.2f}",
         video_start=f"{s.video_start_s:.2f}",
         first_frame=s.video_frames[0],
-        size_measured=not s.notes.get("G", "").startswith(SCALE_NOT_ESTIMATED),
+        size_measured=s.G_measured,
         size_note=s.notes.get("G", ""),
         speed_words=_speed_words(s.speed_ratio),
         fit_mean=f"{float(fit.mean()):.2f}",

@@ -251,6 +251,8 @@ class Registration:
         A: ``(T', J, 3, 3)`` articulation: per joint ``R_reference(C)^T R_student`` of the
             local rotations (identity for the root and for joints no part drives).
         G: body scale (bone lengths and widths relative to the reference).
+        G_measured: whether G was measured (or given); ``False``: it is 1 because the
+            cameras cannot tell body size from depth (one perspective camera).
         rotations: ``(T', J, 3, 3)`` the student's local rotations (root's = T_rotation).
         fit: ``(T',)`` per-frame fit score, silhouette IoU of the registered body against
             the observed silhouettes (mean over cameras), in [0, 1].
@@ -276,6 +278,7 @@ class Registration:
     timings: dict[str, float] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    G_measured: bool = True
     part_spread_deg: Tensor = field(default_factory=lambda: torch.empty(0, 0))
 
     @property

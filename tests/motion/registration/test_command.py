@@ -91,6 +91,9 @@ def test_printed_summary_names_the_report(register_run, summary):
     assert f"report {register_run.out / 'report.html'}" in out
     assert f"registered {summary['num_video_frames']} video frames against" in out
     assert "speed ratio" in out and "starts at" in out and "time offset" not in out
+    # one perspective camera: the size is not a measurement, and not shown as one
+    assert summary["G_measured"] is False and "body size G" not in out
+    assert "body size not measured (one perspective camera" in out
 
 
 def test_summary_json(summary, video_frames):

@@ -539,6 +539,9 @@ def test_save_and_load_registration(tmp_path, reference):
         assert got.dtype == want.dtype, name
         assert torch.equal(got, want), name
     assert back.G == 1.07 and isinstance(back.G, float)
+    assert back.G_measured is True
+    reg.G_measured = False
+    assert load_registration(save_registration(reg, tmp_path / "unmeasured")).G_measured is False
     assert back.timings == reg.timings and back.notes == reg.notes
 
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
