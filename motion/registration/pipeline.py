@@ -30,8 +30,8 @@ from torch import Tensor
 from motion.body.observation import PartShapes, body_layers
 from motion.cameras import CameraRig
 from motion.registration.approximate import (
-    Stage1Result,
     SCALE_NOT_ESTIMATED,
+    Stage1Result,
     Stage1Settings,
     approximate_registration,
     estimate_body_scale,

@@ -47,6 +47,7 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "t_rot_err_deg_mean",
         "t_pos_err_mean",
         "a_err_deg_mean",
+        "a_err_deg_mean_no_change",
         "e3d_mean",
     ],
     "register_long": ["c_err_mean", "c_err_mean_stage1", "a_err_deg_mean"],

@@ -17,7 +17,9 @@ from experiments.register_synthetic import (
     _swing_error_deg,
     angle_error_metrics,
     finding_agreement,
+    nearest_truth,
     true_correspondence,
+    true_correspondences,
     true_differences,
 )
 from motion.registration import Reference
@@ -30,6 +32,30 @@ def test_true_correspondence_of_a_motion_with_itself_is_the_warp():
     ref = Reference.from_bvh(WALK)
     shown = time_warp(60, ref.num_frames, 0.3, torch.Generator().manual_seed(4))
     assert torch.equal(true_correspondence(ref, shown, ref), shown)
+
+
+def test_a_repeated_reference_has_two_equally_true_alignments_and_a_plain_one_has_one():
+    """A reference that performs the student's clip twice over matches it equally well at
+    either repetition (the cycle ambiguity of a walk): both are true, the registration is
+    scored against the nearer; a reference without repetition keeps one truth."""
+    ref = Reference.from_bvh(WALK)
+    clip = slice(20, 140)
+    twice = dataclasses.replace(
+        ref,
+        rotations=torch.cat([ref.rotations[clip], ref.rotations[clip]]),
+        root=torch.cat([ref.root[clip], ref.root[clip]]),
+    )
+    student = dataclasses.replace(ref, rotations=ref.rotations[clip], root=ref.root[clip])
+    shown = torch.arange(0, 120, 4)
+    alternatives = true_correspondences(student, shown, twice)
+    assert {tuple(shown.tolist()), tuple((shown + 120).tolist())} <= {
+        tuple(a) for a in alternatives.tolist()
+    }
+    assert nearest_truth(shown + 118, alternatives) == alternatives.tolist().index(
+        (shown + 120).tolist()
+    )
+    alone = true_correspondences(ref, torch.arange(40, 200, 4), ref)
+    assert alone.shape[0] == 1 and torch.equal(alone[0], torch.arange(40, 200, 4))
 
 
 def test_swing_error_ignores_twist_about_the_bone_and_measures_a_bend():
@@ -92,7 +118,7 @@ def test_a_stated_finding_agrees_when_its_sign_and_size_match_the_truth_over_its
 def test_true_differences_of_the_reference_against_itself_are_zero():
     ref = Reference.from_bvh(WALK)
     shown = torch.arange(0, 40, 2)
-    truth = Truth(shown, None, None, ref.rotations[shown], None, 1.7)
+    truth = Truth(shown, None, None, ref.rotations[shown], None, 1.7, shown[None])
     assert true_differences(ref, None, truth).abs().max() < 1e-9
 
 
