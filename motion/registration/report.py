@@ -180,7 +180,9 @@ def heatmap_figure(inputs: ReportInputs) -> str:
         extent=(time[0] - step / 2, time[-1] + step / 2, len(cols) - 0.5, -0.5),
         interpolation="nearest",
     )
-    ax.set_yticks(range(len(cols)), [describe_coordinate(a.coordinates[c]).label for c in cols], fontsize=8)
+    ax.set_yticks(
+        range(len(cols)), [describe_coordinate(a.coordinates[c]).label for c in cols], fontsize=8
+    )
     ax.set_xlabel("student video time (s)")
     ax.set_title("How much more (red) or less (blue) each joint angle is than the reference's")
     fig.colorbar(im, ax=ax, label="degrees", fraction=0.04, pad=0.02)

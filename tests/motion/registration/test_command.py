@@ -120,9 +120,7 @@ def test_summary_json(summary, video_frames):
     # the inference measured every one's uncertainty
     found = summary["largest_differences"]
     assert found and all(d["stated"] is (d["why"] == "") for d in found)
-    assert all(
-        d["why"].startswith(("only ", "its interval (")) for d in found if not d["stated"]
-    )
+    assert all(d["why"].startswith(("only ", "its interval (")) for d in found if not d["stated"])
     assert all(isinstance(d["uncertainty_deg"], float) and d["uncertainty_deg"] > 0 for d in found)
     # one clock: frames from the start of the video (no video.start here), one "starts at"
     assert summary["video_frames"] == list(range(video_frames))
@@ -157,9 +155,7 @@ def test_student_bvh_reads_back(register_run, video_frames):
     assert np.isfinite(student.motion).all()
 
 
-def test_joint_angles_csv_has_a_row_per_frame_and_coordinate(
-    register_run, summary, video_frames
-):
+def test_joint_angles_csv_has_a_row_per_frame_and_coordinate(register_run, summary, video_frames):
     """One row per frame and clinical coordinate (OpenSim's names), those of the summary."""
     with (register_run.out / "joint_angles.csv").open(newline="", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))

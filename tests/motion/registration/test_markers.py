@@ -306,8 +306,8 @@ def test_heel_markers_slope_the_rest_foot_so_that_its_sole_is_flat():
         heel_local = 0.06 * down / np.linalg.norm(down) - 0.04 * toe_dir
         heels.append(src[f"{side}Foot"] + fk.rotations[:, foot].numpy() @ heel_local)
         toe_to_ankle, toe_to_heel = -toe_local, heel_local - toe_local
-        cos = toe_to_ankle @ toe_to_heel / np.linalg.norm(toe_to_ankle) / np.linalg.norm(
-            toe_to_heel
+        cos = (
+            toe_to_ankle @ toe_to_heel / np.linalg.norm(toe_to_ankle) / np.linalg.norm(toe_to_heel)
         )
         want[side] = np.arccos(cos)
     with_heels = Markers(
