@@ -10,6 +10,11 @@
       --cpus-per-task: CPUs (= torch threads) per Ray task, default 1. A run whose folder
       holds a record of the same resolved config is not rerun; --force reruns it. Runs that
       fail are reported by label, the others finish, and the command exits with status 1.
+  python -m experiments summarise OUT_DIR [--metrics a,b] [--over seed,warp_seed] [--title T]
+                                 [--to FILE]
+      a results page (Markdown) from the run records in OUT_DIR: provenance (commit, date,
+      machine, threads), then a row per group of runs that differ only in their seeds,
+      each metric as mean +- std; printed, or written to FILE (e.g. docs/results/X.md)
   python -m experiments list
       the experiments, their config files and every field (type, range, default, meaning)
   python -m experiments demo [--bvh FILE] [--seed N] [--out-dir DIR]
@@ -33,6 +38,7 @@ from experiments.backends import BACKENDS, make_backend
 from experiments.config import ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
 from experiments.runtime import retain_freed_memory
+from experiments.summarise import SEED_KEYS, SummariseError, load_runs, results_markdown
 from motion.cli import Parser, UsageError, add_debug, one_line, run
 from motion.settings import describe
 
@@ -96,7 +102,7 @@ def _int_at_least(minimum: int):
 def _parser() -> Parser:
     parser = Parser(prog="python -m experiments", description=__doc__, epilog=experiments_help())
     add_debug(parser)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,list,demo}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,summarise,list,demo}")
     run_p = sub.add_parser(
         "run",
         help="run a YAML config (see experiments/README.md)",
@@ -136,6 +142,25 @@ def _parser() -> Parser:
         action="store_true",
         help="rerun runs whose folder already holds a record of the same resolved config",
     )
+    summ = sub.add_parser(
+        "summarise",
+        help="a results page (Markdown, mean +- std over seeds) from a sweep's run records",
+        description="Read the run records in OUT_DIR (one run, or a sweep's folder) and write "
+        "a Markdown page: their provenance and a row per group of runs that differ only in "
+        "the --over keys, each metric as mean +- std over the group.",
+    )
+    add_debug(summ, top=False)
+    summ.add_argument("out_dir", type=Path, help="the runs' out_dir (e.g. runs/register_cross)")
+    summ.add_argument(
+        "--metrics", default=None, help="comma-separated metric names (default: all, in order)"
+    )
+    summ.add_argument(
+        "--over",
+        default=",".join(SEED_KEYS),
+        help="comma-separated config keys whose runs are repetitions (default: seed,warp_seed)",
+    )
+    summ.add_argument("--title", default=None, help="the page's title (default: OUT_DIR's name)")
+    summ.add_argument("--to", type=Path, default=None, help="write the page here (default: print)")
     list_p = sub.add_parser("list", help="list the experiments and their fields")
     add_debug(list_p, top=False)
     demo = sub.add_parser(
@@ -205,10 +230,35 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _summarise(args: argparse.Namespace) -> int:
+    try:
+        runs = load_runs(args.out_dir)
+        metrics = [m for m in args.metrics.split(",") if m] if args.metrics else None
+        over = [k for k in args.over.split(",") if k]
+        page = results_markdown(
+            args.title or args.out_dir.name,
+            runs,
+            metrics,
+            over,
+            source=f"python -m experiments summarise {args.out_dir}",
+        )
+    except SummariseError as err:
+        raise UsageError(str(err)) from None
+    if args.to is None:
+        print(page, end="")
+        return 0
+    args.to.parent.mkdir(parents=True, exist_ok=True)
+    args.to.write_text(page)
+    print(f"wrote {args.to} ({len(runs)} runs)")
+    return 0
+
+
 def _command(args: argparse.Namespace) -> int:
     if args.command == "list":
         print(experiments_help(details=True))
         return 0
+    if args.command == "summarise":
+        return _summarise(args)
     retain_freed_memory()  # a process-wide allocator setting: see experiments/runtime.py
     return _run(args) if args.command == "run" else _demo(args)
 

@@ -4,6 +4,7 @@ Each run writes into its ``out_dir``: ``metrics.json`` (flat: metric name -> num
 accuracy figures only, so the same config and seed give a byte-identical file),
 ``timings.json`` (the experiment's timing figures, e.g. ``poses_per_s``, which vary from run
 to run; only for experiments that measure any), ``config.yaml`` (the resolved config),
+``provenance.json`` (commit, date, machine, threads: :func:`experiments.summarise.provenance`),
 ``per_frame.csv`` where the experiment has per-frame values, ``plot.png`` and ``table.md``. A
 config with a ``sweep`` runs once per entry (into ``out_dir/<label>``) and also writes the
 combined ``table.md``, ``metrics.json`` and ``timings.json`` (keys suffixed ``@label``) in
@@ -55,6 +56,7 @@ from experiments.config import (
     sweep_label,
 )
 from experiments.progress import Tally, note
+from experiments.summarise import provenance
 
 __all__ = [
     "CONFIGS",
@@ -182,6 +184,7 @@ def _write_run(
     accuracy, timing = split_timings(metrics, exp.timings)
     _write_json(out, accuracy, timing)
     (out / "config.yaml").write_text(yaml.safe_dump(_config_doc(name, cfg), sort_keys=False))
+    (out / "provenance.json").write_text(json.dumps(provenance(), indent=2) + "\n")
     if columns:
         keys = list(columns)
         with open(out / "per_frame.csv", "w", newline="") as fh:
@@ -201,6 +204,7 @@ RECORD_FILES = (
     "metrics.json",
     "timings.json",
     "config.yaml",
+    "provenance.json",
     "per_frame.csv",
     "plot.png",
     "table.md",

@@ -349,11 +349,11 @@ def test_malformed_overrides(tmp_path, capsys, config, overrides, expected):
 USAGE_CASES = [
     (
         [],
-        "python -m experiments: the following arguments are required: {run,list,demo} (see python -m experiments --help)",
+        "python -m experiments: the following arguments are required: {run,summarise,list,demo} (see python -m experiments --help)",
     ),
     (
         ["bogus"],
-        r"re:python -m experiments: argument \{run,list,demo\}: invalid choice: 'bogus' .*\(see python -m experiments --help\)",
+        r"re:python -m experiments: argument \{run,summarise,list,demo\}: invalid choice: 'bogus' .*\(see python -m experiments --help\)",
     ),
     (
         ["run"],

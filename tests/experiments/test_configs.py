@@ -100,6 +100,10 @@ def test_every_config_runs_tiny_and_writes_its_record(path, tmp_path):
     timings_file = tmp_path / "timings.json"
     timings = json.loads(timings_file.read_text()) if timings_file.exists() else {}
     assert _same_record({**on_disk, **timings}, metrics) and (tmp_path / "table.md").exists()
+    records = [p.parent for p in tmp_path.rglob("config.yaml")]  # the run, or a sweep's runs
+    assert records and all(
+        json.loads((r / "provenance.json").read_text())["commit"] for r in records
+    )
     for key in CONTRACT[name]:
         assert _has(on_disk, key), key
     for key in TIMINGS_CONTRACT[name]:

@@ -54,6 +54,7 @@ def test_a_sweep_writes_each_record_and_the_combined_files(tmp_path, toy_registe
         "metrics.json",
         "per_frame.csv",
         "plot.png",
+        "provenance.json",
         "table.md",
         "timings.json",
     ]
