@@ -1040,7 +1040,7 @@ class _Levels:
         or gain whole cycles to follow (a 2-minute walk against its loop repeated, warp seed
         0: 48 % in phase, 91 % with the scaled prior; seeds 1 and 2: 78 -> 72 % and 85 -> 76 %,
         where the path changes copy of the loop at places the pair costs hardly tell from the
-        truth: README, "A long input")."""
+        truth: docs/experiments.md, "A long input")."""
         return None if self.step_cost is None else scale * self.step_cost
 
     def step_lp(self, scale: int) -> np.ndarray:

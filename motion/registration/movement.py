@@ -26,7 +26,7 @@ movement performed by two people, with its threshold in :class:`MovementSettings
 
 Thresholds were set from the physics above and checked (not fitted) on synthetic students
 of the bundled CMU motions and on the real videos; the measurements are in the closing
-notes of issue 39 and the README's results. Speed alone is not a criterion: a slow
+notes of issue 39 and docs/experiments.md. Speed alone is not a criterion: a slow
 student is a finding, not another movement.
 """
 

@@ -114,7 +114,7 @@ class RefineSettings:
             rad, ``articulation_outlier=0``) the joints the student moves as the reference
             carried ~3 degrees of noise each, and C shifted to spread the differences of
             the two that he moves differently. Synthetic walk, two cameras, seed 0: A 4.4 ->
-            2.8 degrees, C 1.85 -> 1.75; one camera A 4.6 -> 3.0 (README).
+            2.8 degrees, C 1.85 -> 1.75; one camera A 4.6 -> 3.0 (docs/experiments.md).
         twist_from_reference: fit each part's rotation to its axis and its children's
             joints, the rest (a limb's twist) from the reference
             (:func:`motion.body.fit.fit_part_rotations`); ``False``: BP's rotations as
@@ -154,7 +154,7 @@ class RefineSettings:
             first order, so each frame's step is chosen on its own: where the images hardly
             tell frames apart C wanders (a few frames either way through a walk) and at
             the ends it stalls. Synthetic walk, one camera, seeds 0 / 1: C 3.74 / 3.40 ->
-            2.32 / 2.86 reference frames (README). 0 switches it off.
+            2.32 / 2.86 reference frames (docs/experiments.md). 0 switches it off.
         tempo_band: half-width of that band, reference frames.
         smooth_s: seconds, the standard deviation of a Gaussian in time by which the final
             articulation A (each joint's rotation relative to the reference's at C), T's
