@@ -562,7 +562,9 @@ def test_summary_speed_offset_and_json(reference):
     reg.fit[3] = math.nan
     angles = joint_angles(reg, reference, 30.0)
     settings = {"seed": 0, "stage1": {"particles": 64}, "scale": None, "weight": math.inf}
-    summary = summarise(reg, reference, angles, 30.0, settings)
+    summary = summarise(
+        reg, reference, angles, 30.0, settings, findings=FindingSettings(method_error_deg=0.0)
+    )
     rate = reference.frame_rate  # 1 / 0.0083333 s
     assert summary.speed_ratio == pytest.approx(3 * 30.0 / rate, rel=1e-12)
     assert summary.reference_start_s == pytest.approx(5 / rate, rel=1e-12)
@@ -659,7 +661,7 @@ def test_angle_uncertainty_adds_the_two_segments_part_spreads_in_quadrature(refe
 def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_zero():
     """Each rule alone withholds a finding and says why; the sentence carries the
     uncertainty when there is one."""
-    rules = FindingSettings(interval_z=2.0, min_trusted_s=0.2)
+    rules = FindingSettings(interval_z=2.0, min_trusted_s=0.2, method_error_deg=0.0)
     sure = JointDifference("knee_angle_l", -12.0, 1.0, 1.5, 6.0, uncertainty_deg=3.0, frames=13)
     assert rules.why_not(sure, 25.0) == ""
     assert sure.text == (
@@ -673,7 +675,16 @@ def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_ze
     assert rules.why_not(short, 25.0).startswith("only 4 trusted frame(s) show it; at least 5")
     unmeasured = dataclasses.replace(sure, uncertainty_deg=math.nan)
     assert rules.why_not(unmeasured, 25.0) == "" and "±" not in unmeasured.text
-    with pytest.raises(ValueError, match="interval_z and min_trusted_s must be >= 0"):
+    # the method's own error joins the inference's in quadrature: -12 +- 2 hypot(3, 12)
+    careful = FindingSettings(interval_z=2.0, min_trusted_s=0.2, method_error_deg=12.0)
+    assert careful.why_not(sure, 25.0) == (
+        "its interval (-12 ± 25 degrees; the inference's ± 3 and the method's error of 12 "
+        "degrees) holds 0: the inference cannot tell it from no difference"
+    )
+    clear = dataclasses.replace(sure, mean_difference_deg=-30.0)
+    assert careful.why_not(clear, 25.0) == ""
+    assert careful.why_not(dataclasses.replace(unmeasured, mean_difference_deg=-20.0), 25) != ""
+    with pytest.raises(ValueError, match="interval_z, min_trusted_s and method_error_deg must"):
         FindingSettings(interval_z=-1.0)
 
 
@@ -689,7 +700,12 @@ def test_summary_withholds_the_findings_the_inference_cannot_tell_from_zero(refe
     for spread, stated in ((1.0, True), (10.0, False)):
         reg.part_spread_deg = torch.full((t, reference.spec.num_parts), spread)
         angles = joint_angles(reg, reference, 30.0)
-        top = summarise(reg, reference, angles, 30.0, {}).largest_differences[0]
+        spread_only = FindingSettings(method_error_deg=0.0)
+        top = summarise(reg, reference, angles, 30.0, {}, findings=spread_only)
+        top = top.largest_differences[0]
         assert top["coordinate"] == "knee_angle_l" and top["stated"] is stated
+        # by default the method's error (12 degrees) also counts: 12 is not clear of it
+        default = summarise(reg, reference, angles, 30.0, {}).largest_differences[0]
+        assert default["stated"] is False and "the method's error of 12" in default["why"]
         assert top["uncertainty_deg"] == pytest.approx(math.hypot(spread, spread))
         assert ("holds 0" in top["why"]) is not stated
