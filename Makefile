@@ -15,7 +15,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
 	$(PIP_INSTALL) torch==2.13.0
-	$(PIP_INSTALL) -e '.[test,distributed]'
+	$(PIP_INSTALL) -e '.[test,distributed,perception]'
+	# the person detector: without its declared dependencies (see pyproject's perception extra)
+	$(PIP_INSTALL) --no-deps mediapipe==0.10.14
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -33,6 +35,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_particle_bp.py
 	$(BIN)/python benchmarks/bench_observation.py
+	$(BIN)/python benchmarks/bench_perception.py
 
 clean:
 	rm -rf $(VENV)

@@ -12,6 +12,10 @@ distances are in pixels.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -26,6 +30,7 @@ __all__ = [
     "distance_to_edges",
     "edges",
     "foreground_masks",
+    "native_stderr_silenced",
     "read_camera_videos",
     "read_video",
     "select_person",
@@ -35,6 +40,26 @@ __all__ = [
 
 class VideoError(ValueError):
     """A video that cannot be used (does not open, has no frames, inconsistent sizes)."""
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 to the null device meanwhile: native libraries print there, past
+    ``sys.stderr`` (FFmpeg inside OpenCV its complaints about a file, ``moov atom not
+    found``; TensorFlow Lite inside MediaPipe its delegate's start-up lines)."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 # Largest accepted resize factor: upscaling beyond this only multiplies memory (a 1080p video

@@ -13,13 +13,29 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BODY_25B", "KeypointFileError", "Markers", "read_openpose_folder", "read_trc"]
+__all__ = [
+    "BODY_25B",
+    "MEDIAPIPE_POSE_33",
+    "KeypointFileError",
+    "Markers",
+    "read_openpose_folder",
+    "read_trc",
+]
 
 #: OpenPose BODY_25B keypoint order
 BODY_25B = [
     "Nose", "LEye", "REye", "LEar", "REar", "LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist",
     "RWrist", "LHip", "RHip", "LKnee", "RKnee", "LAnkle", "RAnkle", "UpperNeck", "HeadTop",
     "LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel",
+]  # fmt: skip
+
+#: MediaPipe (BlazePose) Pose's 33 landmarks in its order, named as OpenPose names its own
+#: (``LFootIndex`` is the tip of the second toe, ``LEyeInner`` the eye's inner corner)
+MEDIAPIPE_POSE_33 = [
+    "Nose", "LEyeInner", "LEye", "LEyeOuter", "REyeInner", "REye", "REyeOuter", "LEar", "REar",
+    "MouthL", "MouthR", "LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist",
+    "LPinky", "RPinky", "LIndex", "RIndex", "LThumb", "RThumb", "LHip", "RHip", "LKnee",
+    "RKnee", "LAnkle", "RAnkle", "LHeel", "RHeel", "LFootIndex", "RFootIndex",
 ]  # fmt: skip
 
 

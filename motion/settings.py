@@ -451,6 +451,8 @@ class Settings:
         self.validate()
 
     def validate(self) -> None:
-        """Check (and normalise) every field; subclasses add checks across fields."""
+        """Check (and normalise) every field; subclasses add checks across fields (frozen
+        dataclasses too: a normalised value is set past ``__setattr__``)."""
         for name in _fields(type(self)):
-            setattr(self, name, coerce(type(self), name, getattr(self, name), type(self).__name__))
+            value = coerce(type(self), name, getattr(self, name), type(self).__name__)
+            object.__setattr__(self, name, value)

@@ -15,7 +15,6 @@ Outputs (:data:`OUTPUT_FILES`): ``registration.npz``, ``summary.json``, ``studen
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
@@ -27,11 +26,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import numpy as np
 from tqdm import tqdm
 
 from motion.bodyparts import BodyPartMappingError
 from motion.cameras import CameraRig, load_pose2sim_calibration
 from motion.draw import write_video
+from motion.features import native_stderr_silenced
+from motion.perception.fusion import fuse_silhouettes
+from motion.perception.run import DetectionRun, detect_videos, masks_at
 from motion.registration.config import RegisterConfig, load_config, settings_dict
 from motion.registration.export import (
     TRUSTED_FIT,
@@ -51,7 +54,12 @@ from motion.registration.pipeline import register
 from motion.registration.render import body_poses, points_in_view, side_by_side_frames
 from motion.registration.report import ReportInputs, write_report
 from motion.registration.types import Reference, Registration, RegistrationError
-from motion.registration.video import VideoInput, VideoSettings, features_from_videos
+from motion.registration.video import (
+    VideoInput,
+    VideoSettings,
+    features_from_videos,
+    with_silhouettes,
+)
 
 __all__ = ["OUTPUT_FILES", "RegisterJob", "RegisterOutcome", "run_register", "summary_lines"]
 
@@ -180,32 +188,13 @@ def _read_rig(path: Path | None, videos: list[Path]) -> CameraRig | None:
     return rig
 
 
-@contextlib.contextmanager
-def _native_stderr_silenced() -> Iterator[None]:
-    """File descriptor 2 to the null device meanwhile: FFmpeg inside OpenCV prints its
-    complaints about a file (``moov atom not found``) there, past ``sys.stderr``."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def _container_frames(path: Path, settings: VideoSettings) -> tuple[int, float] | None:
     """The frames kept and their rate as the video's container says (``None`` when it
     does not say, or the file cannot be opened: :func:`features_from_videos` then reports
     it), from ``start``, ``count``, ``step`` and ``frame_rate`` -- without decoding."""
     if not path.is_file():
         return None
-    with _native_stderr_silenced():  # a bad file is reported once, by the reader proper
+    with native_stderr_silenced():  # a bad file is reported once, by the reader proper
         cap = cv2.VideoCapture(str(path))
         try:
             if not cap.isOpened():
@@ -261,6 +250,7 @@ def _write_outputs(
     video: VideoInput,
     reg: Registration,
     show: bool,
+    detection: DetectionRun | None = None,
 ):
     rate = video.features.frame_rate
     rig = video.features.cameras
@@ -280,6 +270,8 @@ def _write_outputs(
         movement=movement,
         findings=cfg.findings,
     )
+    if detection is not None:
+        summary = dataclasses.replace(summary, detection=detection.summary())
     files = {}
     files["registration.npz"] = save_registration(reg, stage / "registration.npz")
     (stage / "summary.json").write_text(summary.to_json(), encoding="utf-8")
@@ -365,9 +357,12 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
         _check_durations(reference, *probed, slack=0.9)
     video = features_from_videos(job.videos, rig, cfg.video)
     _check_durations(reference, video.features.num_frames, video.features.frame_rate)
+    detection = None
     if job.keypoints:
         source = job.keypoints[0] if len(job.keypoints) == 1 else list(job.keypoints)
         video = attach_keypoints(video, source, reference)
+    elif cfg.perception.detector is not None:
+        video, detection = _detect(job, cfg, reference, video, show_progress)
     log = _log(show_progress)
     if video.note:
         log(video.note)
@@ -380,10 +375,14 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
     )
     if video.note:
         reg.notes["cameras"] = video.note
+    if detection is not None:
+        reg.timings["detection"] = detection.seconds
     reg.warnings[:0] = video.warnings
     stage = Path(tempfile.mkdtemp(dir=job.out, prefix=".partial-"))
     try:
-        summary, files = _write_outputs(stage, job, cfg, reference, video, reg, show_progress)
+        summary, files = _write_outputs(
+            stage, job, cfg, reference, video, reg, show_progress, detection
+        )
     except OSError as err:
         shutil.rmtree(stage, ignore_errors=True)
         if err.filename is not None and Path(err.filename).parent == stage:
@@ -394,6 +393,69 @@ def _run(job: RegisterJob, show_progress: bool) -> RegisterOutcome:
         shutil.rmtree(stage, ignore_errors=True)
         raise
     return RegisterOutcome(reg, summary, _publish(stage, job.out, files))
+
+
+#: the detections' folder inside the output folder (kept for reruns: a cache, not a result)
+DETECTIONS_FOLDER = "detections"
+
+
+def _detect(
+    job: RegisterJob,
+    cfg: RegisterConfig,
+    reference: Reference,
+    video: VideoInput,
+    show_progress: bool,
+) -> tuple[VideoInput, DetectionRun]:
+    """The videos' kept frames through the person detector (:mod:`motion.perception`), its
+    joints attached as the keypoint observation."""
+    frames = video.start + video.step * np.arange(video.features.num_frames)
+    job.out.mkdir(parents=True, exist_ok=True)
+    run = detect_videos(
+        job.videos,
+        job.out / DETECTIONS_FOLDER,
+        frames.tolist(),
+        cfg.perception,
+        progress=_progress(show_progress),
+    )
+    video = attach_keypoints(
+        video,
+        [cam.folder for cam in run.cameras],
+        reference,
+        convention=run.keypoint_set,
+        spec=run.spec,
+    )
+    fps = run.frames_per_second
+    speed = "reused from an earlier run" if fps is None else f"{fps:.1f} frames/s"
+    found = ", ".join(f"{c.video.name} {c.detected}/{len(run.frames)}" for c in run.cameras)
+    notes = [video.note, f"person detector {run.detector} ({speed}): a person in {found} frames"]
+    if cfg.perception.fuse_mask:
+        video, used = _fused(video, run, frames, cfg)
+        notes.append(
+            "silhouettes: the detector's mask near the tracked region in "
+            + ", ".join(
+                f"{c.video.name} {n}/{len(frames)}" for c, n in zip(run.cameras, used, strict=True)
+            )
+            + " frames (background subtraction alone in the others)"
+        )
+    return dataclasses.replace(video, note="; ".join(n for n in notes if n)), run
+
+
+def _fused(
+    video: VideoInput, run: DetectionRun, frames: np.ndarray, cfg: RegisterConfig
+) -> tuple[VideoInput, list[int]]:
+    """The video's silhouettes fused with the detector's masks
+    (:func:`motion.perception.fusion.fuse_silhouettes`); the frames fused per camera."""
+    sil = video.features.observation.silhouette[0].numpy() > 0.5  # (T', C, H, W)
+    h, w = sil.shape[-2:]
+    reach = round(cfg.perception.mask_reach * max(h, w))
+    fused, used = np.empty(sil.shape, dtype=np.float32), []
+    for c, cam in enumerate(run.cameras):
+        masks, found = masks_at(cam, frames.tolist(), video.scale, (w, h))
+        fused[:, c], took = fuse_silhouettes(
+            sil[:, c], masks, found, reach, cfg.perception.mask_agreement
+        )
+        used.append(int(took.sum()))
+    return with_silhouettes(video, fused, cfg.video), used
 
 
 def _size_words(s: RegistrationSummary) -> str:

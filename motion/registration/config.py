@@ -23,6 +23,7 @@ from pathlib import Path
 
 import yaml
 
+from motion.perception.detector import PerceptionSettings
 from motion.registration.export import FindingSettings
 from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
@@ -41,6 +42,8 @@ class RegisterConfig:
 
     Attributes:
         video: how videos become features (working size, background, person, frames).
+        perception: the person detector that gives 2-D joints when no ``--keypoints`` are
+            given (:class:`~motion.perception.detector.PerceptionSettings`).
         registration: the pipeline's settings (stages 1-3, G, seed).
         movement: when the student counts as performing another movement than the
             reference's (:class:`MovementSettings`).
@@ -48,6 +51,7 @@ class RegisterConfig:
     """
 
     video: VideoSettings = field(default_factory=VideoSettings)
+    perception: PerceptionSettings = field(default_factory=PerceptionSettings)
     registration: RegistrationSettings = field(default_factory=RegistrationSettings)
     movement: MovementSettings = field(default_factory=MovementSettings)
     findings: FindingSettings = field(default_factory=FindingSettings)
@@ -184,6 +188,7 @@ def _user_keys() -> list[str]:
     cfg = RegisterConfig()
     return (
         _leaf_keys(cfg.video, "video.")
+        + _leaf_keys(cfg.perception, "perception.")
         + _leaf_keys(cfg.registration)
         + _leaf_keys(cfg.movement, "movement.")
     )
@@ -207,8 +212,8 @@ def _unknown(obj, item: _Item, fields) -> ConfigError:
     hint = f" (did you mean {' or '.join(close)}?)" if close else ""
     if isinstance(obj, RegisterConfig):
         known = (
-            "video.*, stage1.*, refine.*, movement.*, scale, seed (python -m motion "
-            "register --help)"
+            "video.*, perception.*, stage1.*, refine.*, movement.*, scale, seed (python -m "
+            "motion register --help)"
         )
     else:
         known = ", ".join(sorted(walked + n for n in fields))

@@ -979,6 +979,10 @@ class RegistrationSummary:
             match, then what the input or the inference could not do (frames carried over,
             a video cut short).
         movement: the movement check's evidence (:class:`MovementCheck` as a dict).
+        detection: the person detector's run when one gave the 2-D joints
+            (:meth:`motion.perception.run.DetectionRun.summary`: detector, frames per
+            second, frames detected per camera, whether an earlier run's files were
+            reused); empty when none ran.
     """
 
     reference: str
@@ -1003,6 +1007,7 @@ class RegistrationSummary:
     warnings: list[str] = field(default_factory=list)
     movement: dict = field(default_factory=dict)
     G_measured: bool = True
+    detection: dict = field(default_factory=dict)
 
     def to_json(self, indent: int | None = 2) -> str:
         """The summary as strict JSON text: NaN and infinities as ``null``; paths, tensors,

@@ -10,7 +10,8 @@ Joints2D` cue) use. Inputs (:func:`read_keypoint_source`):
   order); every person of each file is read, as the keypoint sets
   :data:`KEYPOINT_SETS` by their number of values (75: BODY_25B, or BODY_25 when its MidHip
   column sits between the hips; 78: HALPE_26, as Pose2Sim's and Sports2D's RTMPose write;
-  51: COCO-17; 54: OpenPose's COCO-18). One person per frame is kept: a given index into
+  51: COCO-17; 54: OpenPose's COCO-18; 99: MediaPipe Pose's 33 landmarks, as
+  :mod:`motion.perception` writes them). One person per frame is kept: a given index into
   the file's ``people``, or (``person=None``) the detection whose confident keypoints fall
   most inside the tracked silhouette of that frame and camera (dilated by
   :data:`INSIDE_FRACTION` of the image size); where the silhouette is empty, the detection
@@ -30,7 +31,7 @@ to the cameras in natural name order), a single folder of JSON files (one camera
 
 Keypoint names reach the reference's joints through the body model's landmark roles
 (:func:`match_keypoints`): a bundled keypoint spec (``motion/data/bodyparts`` files with a
-``markers`` list: ``openpose_body25b``, ``pose2sim_21``; the one naming the most roles
+``markers`` list: ``openpose_body25b``, ``pose2sim_21``, ``mediapipe_pose33``; the one naming the most roles
 with a single keypoint of the file, or one given) gives each role its keypoints, the
 reference's :class:`~motion.bodyparts.BodyModel` its joints; a keypoint that is the only
 keypoint of a role which the reference places on exactly one skeleton joint is that joint.
@@ -72,7 +73,7 @@ import torch
 import yaml
 
 from motion.bodyparts import DATA, canonical_name, joint_of_point, load_spec, read_parts
-from motion.keypoints import BODY_25B, KeypointFileError, read_trc
+from motion.keypoints import BODY_25B, MEDIAPIPE_POSE_33, KeypointFileError, read_trc
 from motion.registration.types import Reference, RegistrationError
 from motion.registration.video import VideoInput
 
@@ -118,9 +119,16 @@ KEYPOINT_SETS: dict[str, list[str]] = {
     "halpe26": HALPE_26,
     "coco17": HALPE_26[:17],
     "coco18": COCO_18,
+    "mediapipe33": MEDIAPIPE_POSE_33,
 }
 # values per person (3 per keypoint) -> the sets of that size, the default first
-_BY_SIZE = {75: ("body25b", "body25"), 78: ("halpe26",), 51: ("coco17",), 54: ("coco18",)}
+_BY_SIZE = {
+    75: ("body25b", "body25"),
+    78: ("halpe26",),
+    51: ("coco17",),
+    54: ("coco18",),
+    99: ("mediapipe33",),
+}
 
 #: a keypoint counts as inside the silhouette within this fraction of the image's larger
 #: side (working pixels, at least 2): detectors put joints on the body's outline, and

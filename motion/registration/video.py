@@ -51,6 +51,7 @@ __all__ = [
     "VideoSettingsError",
     "default_camera",
     "features_from_videos",
+    "with_silhouettes",
 ]
 
 #: horizontal field of view (degrees) assumed for a video without a calibration: a typical
@@ -669,3 +670,32 @@ def features_from_videos(
     return VideoInput(
         features, frames, scale, "; ".join(notes), paths, settings.start, settings.step, warnings
     )
+
+
+def with_silhouettes(
+    video: VideoInput, silhouettes: np.ndarray, settings: VideoSettings | None = None
+) -> VideoInput:
+    """``video`` with other silhouettes (a fused, soft one: :mod:`motion.perception.fusion`)
+    and the edge distances recomputed around them (edges within ``edge_band_px`` of the new
+    person, ``silhouettes > 0.5``).
+
+    Args:
+        video: as :func:`features_from_videos` made it (its working frames are used).
+        silhouettes: ``(T', C, H, W)`` float in [0, 1] at the working size.
+        settings: the settings the video was read with (the edge band and Canny's
+            thresholds; default: the defaults).
+    """
+    settings = VideoSettings() if settings is None else settings
+    obs = video.features.observation
+    expected = tuple(obs.silhouette.shape[1:])
+    if silhouettes.shape != expected:
+        raise ValueError(f"silhouettes must be {expected} (T', C, H, W); got {silhouettes.shape}")
+    person = silhouettes > 0.5
+    dists = [
+        _edge_distances(frames, person[:, c], settings) for c, frames in enumerate(video.frames)
+    ]
+    sil = torch.from_numpy(np.clip(silhouettes, 0.0, 1.0).astype(np.float32))[None]
+    dist = torch.from_numpy(np.stack(dists, 1))[None]
+    obs = dataclasses.replace(obs, silhouette=sil.to(obs.silhouette.dtype), edge_distance=dist)
+    features = dataclasses.replace(video.features, observation=obs)
+    return dataclasses.replace(video, features=features)

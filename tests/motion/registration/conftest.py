@@ -23,7 +23,8 @@ STUDENT = DATA / "cmu_07_01_walk.bvh"
 SYNTH = ["videos=true", "size=96x72", "focal_px=160", "fps=12"]
 #: registration settings that run in a few seconds on one core: few particles (the band of
 #: C's states must fit in them), one BP pass, one stage-3 round; the median background
-#: against the clean plate with a low threshold, as the demo does for the flat synthetic scene
+#: against the clean plate with a low threshold, as the demo does for the flat synthetic scene,
+#: and no person detector (as the demo: it is made for photographed people, not capsules)
 CHEAP = (
     "refine.particles=12",
     "refine.band=4",
@@ -32,6 +33,7 @@ CHEAP = (
     "refine.rounds=1",
     "video.background=median",
     "video.threshold=12",
+    "perception.detector=none",
 )
 
 

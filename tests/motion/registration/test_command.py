@@ -379,7 +379,8 @@ def _argv(
         argv += ["--background", str(b)]
     for k in keypoints:
         argv += ["--keypoints", str(k)]
-    return [*argv, "--out", str(out), "--quiet", "refine.particles=12", "refine.band=4", *extra]
+    fixed = ["refine.particles=12", "refine.band=4", "perception.detector=none"]
+    return [*argv, "--out", str(out), "--quiet", *fixed, *extra]
 
 
 #: the rest of the conftest's cheap settings (_argv gives the particles and the band)
