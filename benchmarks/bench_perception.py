@@ -11,7 +11,15 @@ then timed, each on the same frames in the same run:
 
 The target of issue 36: >= 15 frames per second at 640 px wide on 2 cores.
 
+With ``--accuracy`` it also scores the detector's joints (:func:`detect_videos` with the
+defaults, as ``motion register`` runs it) against the Pose2Sim trial's own OpenPose BODY_25B
+keypoints, an independent detector: per camera and joint, the median distance in the
+videos' pixels to the nearest OpenPose person, both confident (MediaPipe visibility > 0.5,
+OpenPose > 0.3), with JSON file ``i`` taken for video frame ``i`` (as ``--keypoints`` reads
+them) and, for comparison, for frame ``i + 1``.
+
 Usage: python benchmarks/bench_perception.py [--frames 100] [--width 640] [--threads 2]
+       [--accuracy]
 """
 
 from __future__ import annotations
@@ -26,9 +34,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from motion.keypoints import BODY_25B, MEDIAPIPE_POSE_33
 from motion.perception import MediaPipePose, PerceptionSettings, detect_videos
+from motion.registration.keypoints import read_openpose_people
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = DATA / "video"
+OPENPOSE = DATA / "keypoints" / "pose2sim_balancing_trial" / "pose2d_openpose_body25b"
+#: the joints both detectors have (MediaPipe's and OpenPose's hips follow other conventions)
+JOINTS = ["LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist", "LHip", "RHip",
+          "LKnee", "RKnee", "LAnkle", "RAnkle"]  # fmt: skip
 VIDEOS = {
     "pose2sim cam01 (1080 x 1920)": SHARED / "pose2sim_balancing_trial" / "cam01.mp4",
     "sports2d demo (1768 x 994)": SHARED / "sports2d_demo" / "demo.mp4",
@@ -72,11 +87,67 @@ def mediapipe_without_mask():
     return run
 
 
+def gaps_to_openpose(ours, theirs, frames: int, shift: int) -> np.ndarray:
+    """``(F, J)`` pixel distances (NaN: not both confident) of our joints at video frame
+    ``f`` to OpenPose's file ``f - shift``'s nearest person."""
+    mp = [MEDIAPIPE_POSE_33.index(k) for k in JOINTS]
+    op = [BODY_25B.index(k) for k in JOINTS]
+    rows = []
+    for f in range(max(0, shift), min(frames, theirs.num_frames + shift)):
+        row = np.full(len(JOINTS), np.nan)
+        people = theirs.people[f - shift][:, op]
+        if len(ours.people[f]) and len(people):
+            mine = ours.people[f][0, mp]
+            near = np.nanmedian(np.linalg.norm(people[..., :2] - mine[:, :2], axis=-1), 1)
+            person = people[int(np.nanargmin(near))]
+            ok = (mine[:, 2] > 0.5) & (person[:, 2] > 0.3)
+            row[ok] = np.linalg.norm(mine[ok, :2] - person[ok, :2], axis=-1)
+        rows.append(row)
+    return np.array(rows)
+
+
+def accuracy(frames: int, width: int) -> None:
+    cams = sorted(OPENPOSE.glob("cam*_json"))
+    videos = [SHARED / "pose2sim_balancing_trial" / f"{c.name[:-5]}.mp4" for c in cams]
+    with tempfile.TemporaryDirectory() as out:
+        run = detect_videos(videos, out, list(range(frames)), PerceptionSettings(width=width))
+        ours = [read_openpose_people(c.folder) for c in run.cameras]
+    theirs = [read_openpose_people(c) for c in cams]
+    print(f"\nMediaPipe joints vs the Pose2Sim trial's OpenPose BODY_25B ({frames} frames, px)")
+    table = {}
+    for shift in (0, 1):
+        per_cam = [gaps_to_openpose(o, t, frames, shift) for o, t in zip(ours, theirs, strict=True)]
+        table[shift] = per_cam
+        cells = ", ".join(
+            f"{c.name[:-5]} {np.nanmedian(g):.1f}" for c, g in zip(cams, per_cam, strict=True)
+        )
+        every = np.concatenate(per_cam)
+        no_hips = every[:, [i for i, k in enumerate(JOINTS) if "Hip" not in k]]
+        print(
+            f"  file i = frame i{' + 1' if shift else ''}: {cells}; all {np.nanmedian(every):.1f}"
+            f", without hips {np.nanmedian(no_hips):.1f}"
+        )
+    every = np.concatenate(table[0])
+    print("  per joint (file i = frame i): " + ", ".join(
+        f"{k} {np.nanmedian(every[:, i]):.1f}" for i, k in enumerate(JOINTS)
+    ))  # fmt: skip
+    heights = []
+    for t in theirs:
+        for people in t.people[:frames]:
+            for p in people:
+                ok = p[:, 2] > 0.3
+                if ok.sum() > 10:
+                    heights.append(np.ptp(p[ok, 1]))
+    print(f"  the tallest OpenPose person spans {np.percentile(heights, 90):.0f} px (90th pct)")
+    print("  target (issue 36): median <= 8 px")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--threads", type=int, default=2, help="OpenCV threads (the machine's 2)")
+    ap.add_argument("--accuracy", action="store_true", help="also score against OpenPose")
     args = ap.parse_args()
     cv2.setNumThreads(args.threads)
     print(f"frames/s at {args.width} px wide, {args.frames} frames, {os.cpu_count()} cores")
@@ -102,6 +173,8 @@ def main() -> None:
             f"{run.frames_per_second:11.1f}"
         )
     print("target: mediapipe+mask >= 15 frames/s (issue 36)")
+    if args.accuracy:
+        accuracy(args.frames, args.width)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ location is absent.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -93,11 +94,18 @@ class RegisterRealConfig(ExperimentConfig):
     sports2d_person: list[float] = setting(
         [1190.0, 660.0], "x,y pixel near the walker in that frame (sports2d)", length=2
     )
+    pose2sim_cameras: list[int] | None = setting(
+        None,
+        "the trial's cameras registered (1-based; none: all 4); fewer get a calibration of "
+        "those cameras only, written beside the outputs",
+        min_length=1,
+    )
     pose2sim_keypoints: bool = setting(
-        True,
-        "give the pose2sim case the trial's OpenPose BODY_25B 2-D keypoints as well (without "
-        "them a person standing in place can be registered facing backwards: silhouettes do "
-        "not tell front from back, and there is no walking direction to go by)",
+        False,
+        "give the pose2sim case the trial's OpenPose BODY_25B 2-D keypoints instead of the "
+        "bundled person detector's (2-D joints are needed: without any, a person standing "
+        "in place can be registered facing backwards, silhouettes do not tell front from "
+        "back)",
     )
     frames: int = setting(80, "video frames per case (pose2sim has 100)", ge=2)
     sports2d_width: int = setting(
@@ -198,20 +206,43 @@ def _rmse_against_opensim(
     return out
 
 
+def _calibration_of(path: Path, cameras: list[int], out: Path) -> Path:
+    """A copy of the trial's calibration with only ``cameras`` (1-based) and its metadata."""
+    sections = re.split(r"(?m)^(?=\[)", path.read_text())
+    kept = [
+        text
+        for text in sections
+        if text.strip()
+        and (text.startswith("[metadata]") or any(text.startswith(f"[cam_0{c}]") for c in cameras))
+    ]
+    out.mkdir(parents=True, exist_ok=True)
+    written = out / f"calibration_cams{''.join(map(str, cameras))}.toml"
+    written.write_text("".join(kept))
+    return written
+
+
 def _pose2sim(cfg: RegisterRealConfig, root: Path) -> tuple[dict, dict]:
     markers = read_trc(root / POSE2SIM_TRC)
     bvh = Path(cfg.out_dir) / "pose2sim_reference.bvh"
     bvh.parent.mkdir(parents=True, exist_ok=True)
     reference = reference_from_markers(markers, out_bvh=bvh)
     n = min(cfg.frames, reference.num_frames)
-    cameras = load_pose2sim_calibration(root / POSE2SIM_CALIBRATION).num_cameras
+    total = load_pose2sim_calibration(root / POSE2SIM_CALIBRATION).num_cameras
+    cameras = cfg.pose2sim_cameras or list(range(1, total + 1))
+    if not all(1 <= c <= total for c in cameras):
+        raise ConfigError(f"pose2sim_cameras={cameras}: the trial has cameras 1..{total}")
+    calibration = root / POSE2SIM_CALIBRATION
+    if len(cameras) < total:
+        calibration = _calibration_of(calibration, cameras, Path(cfg.out_dir))
     job = RegisterJob(
         bvh,
-        [root / POSE2SIM_VIDEOS / f"cam0{c + 1}.mp4" for c in range(cameras)],
+        [root / POSE2SIM_VIDEOS / f"cam0{c}.mp4" for c in cameras],
         Path(cfg.out_dir) / "pose2sim",
-        root / POSE2SIM_CALIBRATION,
+        calibration,
         overrides=(*_overrides(cfg, cfg.pose2sim_width), f"video.count={n}"),
-        keypoints=(root / POSE2SIM_KEYPOINTS,) if cfg.pose2sim_keypoints else (),
+        keypoints=tuple(root / POSE2SIM_KEYPOINTS / f"cam0{c}_json" for c in cameras)
+        if cfg.pose2sim_keypoints
+        else (),
     )
     result, seconds = _register(cfg, job)
 

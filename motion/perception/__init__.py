@@ -7,14 +7,15 @@ bundled one (MediaPipe Pose, weights inside its wheel, so it runs offline);
 ``motion register`` reads as it reads any detector's files
 (:func:`motion.registration.keypoints.attach_keypoints`), cached for reruns.
 
-Measured on this project's real videos (2 cores, the frames downscaled to 640 px wide,
-100 frames each; ``benchmarks/bench_perception.py`` reruns the speed figures): MediaPipe Pose
-with its mask runs at 17 frames per second on the Pose2Sim trial's cam01 (23 without the
-mask) and 20 on the Sports2D demo, where background subtraction alone runs at 76 and 296.
-Against the Pose2Sim trial's own OpenPose BODY_25B keypoints (4 cameras x 100 frames, the
-nearest OpenPose person, both confident) the median distance is 17 px in its 1080 x 1920
-frames, about 2 % of the person's 750 px height: shoulders 12-14, elbows 14-16, wrists 15-18,
-knees 14-16, ankles 15, hips 25 (the two detectors place the hip joint differently).
+Measured on this project's real videos (2 cores, frames downscaled to 640 px wide, 100
+frames each; ``benchmarks/bench_perception.py --accuracy`` reruns every figure): MediaPipe
+Pose with its mask runs at 22 frames per second on the Pose2Sim trial's cam01 and 24 on the
+Sports2D demo (14-16 end to end, decoding the native frames included), where background
+subtraction alone runs at 83 and 300. Against the Pose2Sim trial's own OpenPose BODY_25B
+keypoints (4 cameras x 100 frames, the nearest OpenPose person, both confident) the median
+distance is 13.7 px without the hips in its 1080 x 1920 frames, about 1.7 % of the person's
+780 px height (shoulders 12-13, elbows 13-14, wrists 14-16, knees 13-14, ankles 13-14); the
+hips are 24 px apart (the two detectors place the hip joint differently).
 """
 
 from motion.perception.detector import (

@@ -75,6 +75,12 @@ class PerceptionSettings(Settings):
         ge=0,
         le=1,
     )
+    smooth: bool = setting(
+        False,
+        "the detector's own smoothing of the joints and mask over frames (it lags the "
+        "movement: on the Pose2Sim trial the joints are 1.3-1.5 px nearer OpenPose's without "
+        "it; registration has its own temporal prior)",
+    )
     fuse_mask: bool = setting(
         True,
         "the silhouette is the detector's soft person mask where it is about the background "

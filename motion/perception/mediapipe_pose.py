@@ -10,7 +10,8 @@ its tracking score drops under ``min_tracking_confidence``.
 Per landmark the confidence is MediaPipe's *visibility* (the probability that the point is
 in view and not occluded); pixels are ``u = x W - 0.5``, ``v = y H - 0.5`` from its
 normalised ``x, y`` (0 and 1 at the image's outer edges). The mask is its segmentation
-output, the probability that a pixel is the person's, smoothed over frames.
+output, the probability that a pixel is the person's. MediaPipe's smoothing over frames is
+off unless ``smooth`` is set (it lags the movement).
 
 Installed without its dependencies (it pins ``opencv-contrib-python``, which would shadow
 ``opencv-python-headless``): the ``perception`` extra has what it imports.
@@ -86,9 +87,9 @@ class MediaPipePose(PersonDetector):
             return self._pose.Pose(
                 static_image_mode=False,
                 model_complexity=1,
-                smooth_landmarks=True,
+                smooth_landmarks=self.settings.smooth,
                 enable_segmentation=True,
-                smooth_segmentation=True,
+                smooth_segmentation=self.settings.smooth,
                 min_detection_confidence=self.settings.min_detection_confidence,
                 min_tracking_confidence=self.settings.min_tracking_confidence,
             )

@@ -431,7 +431,7 @@ def _detect(
     if cfg.perception.fuse_mask:
         video, used = _fused(video, run, frames, cfg)
         notes.append(
-            "silhouettes: the detector's mask near the tracked region in "
+            "silhouettes: the detector's mask, where it agrees with the tracked region, in "
             + ", ".join(
                 f"{c.video.name} {n}/{len(frames)}" for c, n in zip(run.cameras, used, strict=True)
             )

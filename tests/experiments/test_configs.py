@@ -240,3 +240,18 @@ def test_nbp_schema_defaults_are_the_shipped_config():
     schema = NbpSingleImageConfig()
     for field in ("cues", "proposal", "particles", "iterations", "restarts", "noise_deg"):
         assert getattr(shipped, field) == getattr(schema, field), field
+
+
+def test_register_real_writes_the_calibration_of_the_cameras_it_registers(tmp_path):
+    from experiments.register_real import POSE2SIM_CALIBRATION, _calibration_of
+    from motion.cameras import load_pose2sim_calibration
+
+    path = SHARED_DATA / POSE2SIM_CALIBRATION
+    if not path.is_file():
+        pytest.skip(f"needs {path}")
+    whole = load_pose2sim_calibration(path)
+    for cameras in ([1], [2, 4]):
+        part = load_pose2sim_calibration(_calibration_of(path, cameras, tmp_path))
+        assert part.names == [f"cam_0{c}" for c in cameras]
+        index = [c - 1 for c in cameras]
+        assert (part.K == whole.K[index]).all() and (part.t == whole.t[index]).all()
