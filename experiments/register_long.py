@@ -59,11 +59,13 @@ from torch import Tensor
 
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note, progress
-from experiments.register_synthetic import _angle_deg, _truth
+from experiments.register_synthetic import _truth
 from experiments.runtime import release_freed_memory
 from experiments.stick_time import BUNDLED
 from motion.bvh import BVH, read_bvh, write_bvh
-from motion.kinematics import Skeleton, local_rotations, matrix_to_euler
+from motion.geometry import matrix_to_euler, rotation_about_y
+from motion.kinematics import Skeleton, local_rotations
+from motion.metrics import rotation_angle_error_deg
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
 from motion.registration.inputs import features_from_sequence
@@ -153,14 +155,6 @@ class RegisterLongConfig(ExperimentConfig):
 
 
 # -- the chained reference ---------------------------------------------------------------------
-def _yaw_matrix(angle: Tensor) -> Tensor:
-    """``(...,)`` radians -> ``(..., 3, 3)`` rotations about +Y (BVH up)."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    r = torch.zeros(*angle.shape, 3, 3, dtype=angle.dtype)
-    r[..., 0, 0], r[..., 0, 2], r[..., 1, 1], r[..., 2, 0], r[..., 2, 2] = c, s, 1.0, -s, c
-    return r
-
-
 def heading(rotation: Tensor) -> Tensor:
     """The heading of root rotations ``(..., 3, 3)``: the yaw (radians, about +Y) of the
     root's +Z axis projected on the floor, ``(...,)``."""
@@ -239,7 +233,7 @@ def chain_walk(
     n = min(blend, clip.shape[0] - loop)
     if n > 0:
         j = torch.arange(n)
-        back = _yaw_matrix(-turn)
+        back = rotation_about_y(-turn)
         cont_pos = (back @ ((pos[loop + j] - pos[loop]) * floor)[..., None]).squeeze(-1)
         cont_pos = cont_pos + pos[0] * floor + pos[loop + j] * (1 - floor)
         cont_rot = rot[loop + j].clone()
@@ -251,7 +245,7 @@ def chain_walk(
         rot[:n] = _slerp(cont_rot, rot[:n], w)
         pos[:n] = cont_pos + w[:, None] * (pos[:n] - cont_pos)
     copies = math.ceil(num_frames / loop)
-    turns = _yaw_matrix(torch.arange(copies, dtype=torch.float64) * turn)  # (copies, 3, 3)
+    turns = rotation_about_y(torch.arange(copies, dtype=torch.float64) * turn)  # (copies, 3, 3)
     starts = torch.zeros(copies, 3, dtype=torch.float64)
     for i in range(1, copies):  # each copy starts where the previous would go on
         starts[i] = starts[i - 1] + turns[i - 1] @ step
@@ -265,7 +259,7 @@ def chain_walk(
         flat = new_pos * floor
         d = flat.diff(dim=0)  # (F - 1, 3) horizontal steps
         walked = torch.cat([torch.zeros(1, dtype=d.dtype), (d.norm(dim=-1) * unit).cumsum(0)])
-        bend = _yaw_matrix(walked / radius_m)  # (F, 3, 3)
+        bend = rotation_about_y(walked / radius_m)  # (F, 3, 3)
         steps = (bend[1:] @ d[..., None]).squeeze(-1)
         new_pos = torch.cat([flat[:1], flat[:1] + steps.cumsum(0)]) + new_pos * (1 - floor)
         new_rot[:, 0] = bend @ new_rot[:, 0]
@@ -397,8 +391,8 @@ def _run(cfg: RegisterLongConfig):
 
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     a_true = reference.rotations[truth.C].transpose(-1, -2) @ truth.local
-    a_err = _angle_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
-    t_rot = _angle_deg(truth.rotation, result.T_rotation)
+    a_err = rotation_angle_error_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
+    t_rot = rotation_angle_error_deg(truth.rotation, result.T_rotation)
     c_err = (result.C - truth.C).abs().double()
     c_err1 = (result.C_stage1 - truth.C).abs().double()
     phase = loop_phase_error(result.C - truth.C, facts["loop"])

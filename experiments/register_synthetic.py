@@ -51,7 +51,9 @@ from experiments.progress import note, progress
 from experiments.stick_time import BUNDLED
 from motion.alignment import chain_align
 from motion.angles import COORDINATES, ClinicalAngles, SegmentMap, clinical_angles
-from motion.kinematics import euler_to_matrix, forward_kinematics
+from motion.geometry import euler_to_matrix, rotation_about_y
+from motion.kinematics import forward_kinematics
+from motion.metrics import rotation_angle_error_deg
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
 from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
@@ -116,13 +118,6 @@ class Truth:
     height: float  # metres
     #: (A, T') every equally true C (:func:`true_correspondences`), C first
     C_alternatives: Tensor
-
-
-def _yaw(angles: Tensor) -> Tensor:
-    c, s = torch.cos(angles), torch.sin(angles)
-    r = torch.zeros(len(angles), 3, 3, dtype=torch.float64)
-    r[:, 0, 0], r[:, 0, 2], r[:, 1, 1], r[:, 2, 0], r[:, 2, 2] = c, s, 1.0, -s, c
-    return r
 
 
 def _posture_cost(student: Reference, shown: Tensor, reference: Reference) -> Tensor:
@@ -202,7 +197,7 @@ def _truth(seq, reference: Reference, student: Reference | None) -> Truth:
         if bool((a_deg[:, j] != 0).any()):
             order = source.skeleton.rotation_orders[j] or "ZYX"
             local[:, j] = local[:, j] @ euler_to_matrix(torch.deg2rad(a_deg[:, j]), order)
-    rotation = _yaw(torch.from_numpy(arrays["T_yaw_rad"])) @ local[:, 0]
+    rotation = rotation_about_y(torch.from_numpy(arrays["T_yaw_rad"])) @ local[:, 0]
     joints = torch.from_numpy(arrays["joints3d"])
     if student is None:
         alternatives = shown[None]
@@ -210,11 +205,6 @@ def _truth(seq, reference: Reference, student: Reference | None) -> Truth:
         alternatives = true_correspondences(student, shown, reference)
     height = float((joints[..., 1].amax(-1) - joints[..., 1].amin(-1)).mean())
     return Truth(alternatives[0], rotation, joints[:, 0], local, joints, height, alternatives)
-
-
-def _angle_deg(a: Tensor, b: Tensor) -> Tensor:
-    trace = (a.transpose(-1, -2) @ b).diagonal(dim1=-2, dim2=-1).sum(-1)
-    return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1, 1)))
 
 
 def _bone_directions(reference: Reference, joints: list[int]) -> Tensor:
@@ -295,15 +285,15 @@ def run(cfg: RegisterSyntheticConfig):
 
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     a_true = reference.rotations[truth.C].transpose(-1, -2) @ truth.local
-    a_err = _angle_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
+    a_err = rotation_angle_error_deg(a_true[:, driven], result.A[:, driven])  # (T', J')
     swing = _swing_error_deg(
         a_true[:, driven], result.A[:, driven], _bone_directions(reference, driven)
     )
     # the anchor: "the student moves as the reference" (A = identity) scored the same way
     no_change = torch.eye(3, dtype=a_true.dtype).expand_as(a_true[:, driven])
-    a_err0 = _angle_deg(a_true[:, driven], no_change)
+    a_err0 = rotation_angle_error_deg(a_true[:, driven], no_change)
     swing0 = _swing_error_deg(a_true[:, driven], no_change, _bone_directions(reference, driven))
-    t_rot = _angle_deg(truth.rotation, result.T_rotation)
+    t_rot = rotation_angle_error_deg(truth.rotation, result.T_rotation)
     t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
     joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
     e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from motion.kinematics import Skeleton, forward_kinematics, matrix_to_euler
+from motion.geometry import matrix_to_euler, skew_matrix
+from motion.kinematics import Skeleton, forward_kinematics
 
 __all__ = [
     "CMU_SEGMENTS",
@@ -289,7 +290,7 @@ def _rotation_between(a: Tensor, b: Tensor) -> Tensor:
     if s < 1e-12:
         return torch.eye(3, dtype=F64)
     k = axis / s
-    kx = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=F64)
+    kx = skew_matrix(k)
     angle = math.atan2(float(s), float(c))
     return torch.eye(3, dtype=F64) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
 

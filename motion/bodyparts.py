@@ -27,7 +27,7 @@ import torch
 import yaml
 from torch import Tensor
 
-from motion.kinematics import FKResult, Skeleton
+from motion.kinematics import FKResult, Skeleton, end_site_positions, offset_points
 
 __all__ = [
     "DEFAULT_PARTS",
@@ -37,7 +37,7 @@ __all__ = [
     "BodyPartMappingError",
     "SynthesizedEndWarning",
     "canonical_name",
-    "end_site_positions",
+    "end_site_positions",  # from motion.kinematics: (..., E, 3) in end_sites order
     "joint_of_point",
     "load_spec",
     "map_roles",
@@ -265,21 +265,6 @@ def map_roles(
     return dict(sorted(mapping.items()))
 
 
-def end_site_positions(skeleton: Skeleton, fk: FKResult) -> Tensor:
-    """Positions of every End Site (in ``skeleton.end_sites`` order). ``(..., E, 3)`` metres."""
-    return _offset_points(fk, skeleton.end_sites)
-
-
-def _offset_points(fk: FKResult, offsets: dict[int, Tensor]) -> Tensor:
-    """``position[j] + rotation[j] @ offset`` for each ``{joint j: (3,) offset}``. ``(..., n, 3)``."""
-    if not offsets:
-        return fk.positions[..., :0, :]
-    joints = torch.tensor(list(offsets), dtype=torch.long)
-    offs = torch.stack(list(offsets.values())).to(fk.positions)  # (n, 3)
-    rot = fk.rotations[..., joints, :, :]
-    return fk.positions[..., joints, :] + (rot @ offs.unsqueeze(-1)).squeeze(-1)
-
-
 def _rest_points(skeleton: Skeleton) -> dict[str, Tensor]:
     """Rest-pose positions (all rotations zero) of joints and End Sites, by point name."""
     pos: list[Tensor] = []
@@ -442,7 +427,7 @@ class BodyModel:
             [
                 fk.positions,
                 end_site_positions(skeleton, fk),
-                _offset_points(fk, self.synthesized),
+                offset_points(fk, self.synthesized),
             ],
             -2,
         )

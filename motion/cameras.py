@@ -19,6 +19,8 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import Tensor
 
+from motion.geometry import matrix_to_rotation_vector
+
 __all__ = [
     "CameraFileError",
     "CameraRig",
@@ -314,27 +316,6 @@ def _toml_numbers(values) -> str:
     return repr(float(values))
 
 
-def _rodrigues(r: Tensor) -> Tensor:
-    """Rotation matrix ``(3, 3)`` float64 -> Rodrigues vector ``(3,)``: axis times angle in
-    [0, pi]. Near pi (where the antisymmetric part vanishes) the axis comes from the symmetric
-    part ``(R + I) / 2 = a a^T``, its sign fixed by the small antisymmetric remainder."""
-    skew = torch.stack([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2
-    sin = skew.norm()
-    cos = ((torch.trace(r) - 1) / 2).clamp(-1.0, 1.0)
-    angle = torch.atan2(sin, cos)
-    if cos > -0.9:  # well away from pi: the antisymmetric part is reliable
-        if sin < 1e-300:
-            return torch.zeros(3, dtype=r.dtype)
-        return skew * (angle / sin)
-    sym = (r + r.T) / 2 - cos * torch.eye(3, dtype=r.dtype)  # (1 - cos) a a^T
-    col = int(torch.argmax(torch.diagonal(sym)))
-    axis = sym[:, col] / sym[col, col].clamp_min(1e-300).sqrt()
-    axis = axis / axis.norm()
-    if torch.dot(axis, skew) < 0:
-        axis = -axis
-    return axis * angle
-
-
 def save_pose2sim_calibration(rig: CameraRig, path: str | Path) -> Path:
     """Write ``rig`` as a Pose2Sim calibration TOML, the format
     :func:`load_pose2sim_calibration` reads: one ``[name]`` table per camera with ``name``,
@@ -378,7 +359,7 @@ def save_pose2sim_calibration(rig: CameraRig, path: str | Path) -> Path:
             f"size = {_toml_numbers(values['size'][c].tolist())}",
             f"matrix = {_toml_numbers(values['K'][c].tolist())}",
             f"distortions = {_toml_numbers(values['dist'][c].tolist())}",
-            f"rotation = {_toml_numbers(_rodrigues(values['R'][c]).tolist())}",
+            f"rotation = {_toml_numbers(matrix_to_rotation_vector(values['R'][c]).tolist())}",
             f"translation = {_toml_numbers(values['t'][c].tolist())}",
             "fisheye = false",
             "",

@@ -5,8 +5,8 @@ matrices act on the left (``x_world = R x_local + t``); angles in radians inside
 only where a BVH file stores them; lengths in metres once a :class:`Skeleton` is built
 (``metres_per_unit`` converts the file's units). Euler angles follow BVH: a joint whose
 channels read ``Zrotation Xrotation Yrotation`` has local rotation ``Rz(a) Rx(b) Ry(c)``
-(intrinsic, in channel order). Elementary rotations come from kornia's axis-angle
-conversion.
+(intrinsic, in channel order); the Euler conversions live in :mod:`motion.geometry` and are
+re-exported here.
 
 Shapes: ``J`` joints, any leading batch shape ``(...)`` (typically ``(B, T)``).
 """
@@ -17,20 +17,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import Tensor
 
 from motion.bvh import BVH
+from motion.geometry import euler_to_matrix, matrix_to_euler
 
 __all__ = [
     "FKResult",
     "Skeleton",
     "SkeletonError",
-    "euler_to_matrix",
+    "end_site_positions",
+    "end_site_positions_by_joint",
+    "euler_to_matrix",  # from motion.geometry
     "forward_kinematics",
     "local_from_global",
     "local_rotations",
-    "matrix_to_euler",
+    "matrix_to_euler",  # from motion.geometry
+    "offset_points",
 ]
 
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
@@ -38,53 +41,6 @@ _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 class SkeletonError(ValueError):
     """An inconsistent skeleton (parent after child, unknown rotation order, bad shapes)."""
-
-
-def euler_to_matrix(angles: Tensor, order: str) -> Tensor:
-    """Intrinsic Euler angles (radians) to rotation matrices: ``R = R_o0(a0) R_o1(a1) R_o2(a2)``.
-
-    Args:
-        angles: ``(..., 3)`` in the order of ``order``.
-        order: three distinct axes, e.g. ``"ZYX"`` or ``"ZXY"``.
-
-    Returns:
-        ``(..., 3, 3)``.
-    """
-    if len(order) != 3 or set(order) != {"X", "Y", "Z"}:
-        raise SkeletonError(f"rotation order must be a permutation of 'XYZ'; got {order!r}")
-    lead = angles.shape[:-1]
-    out = None
-    for i, axis in enumerate(order):
-        vec = torch.zeros((*lead, 3), dtype=angles.dtype, device=angles.device)
-        vec[..., _AXIS[axis]] = angles[..., i]
-        r = axis_angle_to_rotation_matrix(vec.reshape(-1, 3)).reshape(*lead, 3, 3)
-        out = r if out is None else out @ r
-    return out
-
-
-def matrix_to_euler(matrix: Tensor, order: str) -> Tensor:
-    """Inverse of :func:`euler_to_matrix` for Tait-Bryan orders (middle angle in
-    ``[-pi/2, pi/2]``; at gimbal lock the last angle is set to 0).
-
-    Shapes: ``(..., 3, 3)`` -> ``(..., 3)``.
-    """
-    if len(order) != 3 or set(order) != {"X", "Y", "Z"}:
-        raise SkeletonError(f"rotation order must be a permutation of 'XYZ'; got {order!r}")
-    i, j, k = (_AXIS[a] for a in order)
-    # sign of the permutation (i, j, k): +1 for cyclic XYZ, YZX, ZXY
-    sign = 1.0 if (j - i) % 3 == 1 else -1.0
-    m = matrix
-    sin_b = (sign * m[..., i, k]).clamp(-1.0, 1.0)
-    b = torch.asin(sin_b)
-    cos_b = torch.sqrt((1 - sin_b**2).clamp_min(0.0))
-    locked = cos_b < 1e-7
-    a = torch.atan2(-sign * m[..., j, k], m[..., k, k])
-    c = torch.atan2(-sign * m[..., i, j], m[..., i, i])
-    # gimbal lock: only a + c (or a - c) is defined; put it all in a
-    a_locked = torch.atan2(sign * m[..., k, j], m[..., j, j])
-    a = torch.where(locked, a_locked, a)
-    c = torch.where(locked, torch.zeros_like(c), c)
-    return torch.stack([a, b, c], -1)
 
 
 @dataclass
@@ -335,6 +291,48 @@ def forward_kinematics(
             -1
         )
     return FKResult(g_pos, g_rot)
+
+
+def offset_points(fk: FKResult, offsets: dict[int, Tensor], scale: float = 1.0) -> Tensor:
+    """World positions of points fixed in joint frames: ``p_j + G_j (scale * o)`` for each
+    ``{joint j: (3,) offset o}`` (metres, in the joint's frame), in the dict's order.
+
+    Shapes: ``fk`` ``(..., J, 3)`` / ``(..., J, 3, 3)`` -> ``(..., n, 3)`` metres
+    (``(..., 0, 3)`` for no offsets). Differentiable in ``fk``."""
+    if not offsets:
+        return fk.positions[..., :0, :]
+    joints = torch.tensor(list(offsets), dtype=torch.long)
+    offs = torch.stack(list(offsets.values())).to(fk.positions) * scale  # (n, 3)
+    rot = fk.rotations[..., joints, :, :]
+    return fk.positions[..., joints, :] + (rot @ offs.unsqueeze(-1)).squeeze(-1)
+
+
+def end_site_positions(skeleton: Skeleton, fk: FKResult, scale: float = 1.0) -> Tensor:
+    """World positions of the skeleton's End Sites, one row per End Site in
+    ``skeleton.end_sites`` order.
+
+    Args:
+        skeleton: the joint tree (``end_sites`` offsets in metres).
+        fk: its forward kinematics, positions ``(..., J, 3)`` metres, rotations
+            ``(..., J, 3, 3)``.
+        scale: body scale G applied to the End Site offsets (as to the bones of ``fk``).
+
+    Returns:
+        ``(..., E, 3)`` metres. :func:`end_site_positions_by_joint` gives them indexed by joint.
+    """
+    return offset_points(fk, skeleton.end_sites, scale)
+
+
+def end_site_positions_by_joint(skeleton: Skeleton, fk: FKResult, scale: float = 1.0) -> Tensor:
+    """:func:`end_site_positions` laid out by joint: ``(..., J, 3)`` metres, row ``j`` the End
+    Site of joint ``j``, NaN where joint ``j`` has none (the layout of
+    :func:`motion.registration.export.joint_flexion`'s ``end_sites``). Arguments as
+    :func:`end_site_positions`."""
+    out = torch.full_like(fk.positions, float("nan"))
+    if skeleton.end_sites:
+        idx = torch.tensor(list(skeleton.end_sites), dtype=torch.long)
+        out[..., idx, :] = end_site_positions(skeleton, fk, scale)
+    return out
 
 
 def local_from_global(skeleton: Skeleton, global_rotations: Tensor) -> Tensor:

@@ -19,6 +19,8 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import Tensor
 
+from motion.geometry import rotation_vector_to_matrix_batch_last, skew_matrix
+
 #: Default convergence tolerance of the LM refinement: a problem stops when a further step
 #: would lower its cost by less than this fraction. At 1.8-3.6 % joint noise this leaves the
 #: rotation within 0.01 degrees of the exact optimum (median ~1e-5;
@@ -178,26 +180,6 @@ def _project(pc: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, skew: T
 def _intrinsics(K: Tensor, shape: tuple[int, ...]) -> list[Tensor]:
     """fx, fy, cx, cy, skew of ``K`` (..., 3, 3), reshaped to broadcast as ``shape``."""
     return [K[..., i, j].reshape(shape) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1))]
-
-
-def _rodrigues(w: Tensor) -> Tensor:
-    """Rotation matrices ``(3, 3, B)`` of rotation vectors ``w`` ``(3, B)`` (radians; batch
-    last, the layout of the LM loop), with the series form near zero."""
-    th2 = (w * w).sum(0)
-    small = th2 < 1e-12
-    th = th2.clamp_min(1e-30).sqrt()
-    s = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
-    c = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2.clamp_min(1e-30))
-    # R = I + s [w]_x + c (w w^T - |w|^2 I)
-    r = (c * w)[:, None] * w[None]
-    diag = 1 - c * th2
-    sw = s * w
-    for i in range(3):
-        r[i, i] += diag
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        r[i, j] -= sw[k]
-        r[j, i] += sw[k]
-    return r
 
 
 def _matmul3(a: Tensor, b: Tensor) -> Tensor:
@@ -447,7 +429,7 @@ class _Active:
     def try_step(self, step: Tensor) -> tuple[Tensor, Tensor, Tensor, tuple, Tensor]:
         """Pose, cost and state after ``step (6, B)``; whether each is an improvement in
         front of the camera."""
-        r_new = _matmul3(_rodrigues(step[:3]), self.r)
+        r_new = _matmul3(rotation_vector_to_matrix_batch_last(step[:3]), self.r)
         t_new = self.t + step[3:]
         state = self.problem.evaluate(r_new, t_new)
         cost = self.problem.cost(state)
@@ -723,17 +705,7 @@ def solve_pose_views(
         du = torch.stack([fx * zi, skew * zi, -(fx * pc[..., 0] + skew * pc[..., 1]) * zi * zi], -1)
         dv = torch.stack([zero, fy * zi, -fy * pc[..., 1] * zi * zi], -1)
         dproj = torch.stack([du, dv], -2) @ R_cam[None, :, None]  # (B, C, n, 2, 3): d uv / d q
-        a, bb, cc = rx[..., 0], rx[..., 1], rx[..., 2]
-        zr = torch.zeros_like(a)
-        skew_rx = torch.stack(
-            [
-                torch.stack([zr, -cc, bb], -1),
-                torch.stack([cc, zr, -a], -1),
-                torch.stack([-bb, a, zr], -1),
-            ],
-            -2,
-        )  # [R X]_x, (B, n, 3, 3)
-        j_rot = -(dproj @ skew_rx[:, None])
+        j_rot = -(dproj @ skew_matrix(rx)[:, None])  # [R X]_x (B, n, 3, 3)
         j = (torch.cat([j_rot, dproj], -1) * sw.unsqueeze(-1)).reshape(b, -1, 6)
         jtj = j.transpose(1, 2) @ j
         g = (j.transpose(1, 2) @ res.reshape(b, -1, 1)).squeeze(-1)

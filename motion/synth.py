@@ -32,13 +32,8 @@ from motion.bvh import read_bvh
 from motion.cameras import CameraRig, save_pose2sim_calibration
 from motion.draw import PART_COLOURS, write_video
 from motion.features import edges
-from motion.kinematics import (
-    FKResult,
-    Skeleton,
-    euler_to_matrix,
-    forward_kinematics,
-    local_rotations,
-)
+from motion.geometry import euler_to_matrix, rotation_about_y
+from motion.kinematics import FKResult, Skeleton, forward_kinematics, local_rotations
 from motion.render import ProjectedParts, label_map, project_parts
 from motion.settings import SettingError, Settings, echo, from_text, setting, show
 
@@ -309,15 +304,7 @@ def synthesize(
     trans = u[:, None] * torch.tensor(cfg.path_m, dtype=torch.float64)
     pivot = fk.positions[0, 0].clone()
     pivot[1] = 0.0
-    cy, sy = torch.cos(yaw), torch.sin(yaw)
-    r_yaw = torch.zeros(num_video, 3, 3, dtype=torch.float64)
-    r_yaw[:, 0, 0], r_yaw[:, 0, 2], r_yaw[:, 1, 1], r_yaw[:, 2, 0], r_yaw[:, 2, 2] = (
-        cy,
-        sy,
-        1.0,
-        -sy,
-        cy,
-    )
+    r_yaw = rotation_about_y(yaw)  # (T', 3, 3)
     pos = (
         (r_yaw[:, None] @ (fk.positions - pivot).unsqueeze(-1)).squeeze(-1) + pivot + trans[:, None]
     )

@@ -18,7 +18,7 @@ channels not all fixed at ``[0, 0]`` (a joint absent from the file is free):
 * **several move** (spine, neck, the shoulder below the spine): a conservative box in the
   child's frame joint's order (else the last moving joint's): every corner of the joints'
   boxes and ``samples`` draws uniform in them (fixed seed), composed, read as Euler angles
-  (:func:`motion.kinematics.matrix_to_euler`); each channel's circular range widened by
+  (:func:`motion.geometry.matrix_to_euler`); each channel's circular range widened by
   ``margin_deg`` on each side, a channel whose widened range covers the circle left free.
   Not exact: it bounds the composite's angles channel by channel, so it admits
   combinations no joint setting reaches.
@@ -36,7 +36,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from motion.kinematics import Skeleton, euler_to_matrix, matrix_to_euler
+from motion.geometry import euler_to_matrix, matrix_to_euler
+from motion.kinematics import Skeleton
 from motion.limits import limits_tensor
 from pgm import EulerBox
 

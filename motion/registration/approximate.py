@@ -59,6 +59,7 @@ from torch import Tensor
 from motion.alignment import AlignmentError, coarse_to_fine_align, slope_step_cost
 from motion.body.observation import SampleLayout
 from motion.features import distance_to_edges
+from motion.geometry import relative_angle, rotation_vector_to_matrix
 from motion.pose import solve_pose, solve_pose_views
 from motion.registration.types import (
     FRAME_CHUNK,
@@ -396,26 +397,6 @@ class Stage1Result:
 
 
 # -- small geometry helpers ----------------------------------------------------------------
-def _rodrigues(w: Tensor) -> Tensor:
-    """Rotation matrices of rotation vectors (radians): ``(..., 3)`` -> ``(..., 3, 3)``."""
-    th2 = (w * w).sum(-1, keepdim=True).unsqueeze(-1)
-    small = th2 < 1e-8
-    th = th2.clamp_min(1e-30).sqrt()
-    a = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
-    b = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2.clamp_min(1e-30))
-    x, y, z = w.unbind(-1)
-    o = torch.zeros_like(x)
-    k = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*w.shape[:-1], 3, 3)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a * k + b * (k @ k)
-
-
-def _angle(a: Tensor, b: Tensor) -> Tensor:
-    """Rotation angle (radians) of ``a^T b``: ``(..., 3, 3)`` x2 -> ``(...)``."""
-    trace = (a * b).sum((-1, -2))
-    return torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0))
-
-
 def _unit(v) -> Tensor:
     v = torch.as_tensor(v, dtype=torch.float64)
     return v / v.norm()
@@ -1165,7 +1146,7 @@ def _levenberg_marquardt(
         floor = 1e-6 * diag.mean(-1, keepdim=True) + 1e-12
         a = jtj + torch.diag_embed(lam[:, None] * diag + floor)
         step = -torch.linalg.solve(a, g)
-        rot_n = _rodrigues(step[:, :3]) @ rot
+        rot_n = rotation_vector_to_matrix(step[:, :3]) @ rot
         p_n = p + step[:, 3:6]
         ls_n = log_s + step[:, 6] if log_s is not None else None
         last = it == iterations - 1
@@ -1254,7 +1235,7 @@ def _targets(
 def _yaw_rotations(scene: _Scene, count: int) -> Tensor:
     """``(count, 3, 3)``: the reference's up onto the world's up, yaws evenly spaced."""
     yaw = torch.arange(count, dtype=scene.up.dtype) * (2 * math.pi / count)
-    return _rodrigues(scene.up * yaw[:, None]) @ scene.align
+    return rotation_vector_to_matrix(scene.up * yaw[:, None]) @ scene.align
 
 
 def _keypoint_starts(scene: _Scene, rows: Tensor, cols: Tensor) -> Init | None:
@@ -1718,7 +1699,7 @@ def _viterbi_candidates(
     ``(T',)`` long candidate index."""
     if cost.shape[0] == 1 or weight == 0:
         return cost.argmin(-1)
-    ang = _angle(rot[:-1, :, None], rot[1:, None, :])  # (T'-1, K, K)
+    ang = relative_angle(rot[:-1, :, None], rot[1:, None, :])  # (T'-1, K, K)
     dp = (p[:-1, :, None] - p[1:, None, :]).norm(dim=-1) / max(body_height, 1e-6)
     table = -weight * (ang.square() + dp.square())
     result = chain_map(-cost.double()[None], TableFactor(table.double()))

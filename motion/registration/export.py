@@ -17,7 +17,7 @@ From a :class:`~motion.registration.types.Registration` and its
 
 Conventions: metres and radians inside; degrees in the angle tables and BVH files (as the
 format stores them), the BVH file's own length unit in BVH files; video time
-``t' / frame_rate`` seconds. Euler angles follow :mod:`motion.kinematics`: channels
+``t' / frame_rate`` seconds. Euler angles follow :mod:`motion.geometry`: channels
 ``Zrotation Yrotation Xrotation`` mean ``R = Rz(a) Ry(b) Rx(c)`` (intrinsic, channel order).
 Shapes: ``T'`` video frames, ``J`` skeleton joints, ``K'`` coordinates the registration estimates.
 """
@@ -45,7 +45,8 @@ from motion.angles import (
     describe_coordinate,
 )
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
-from motion.kinematics import FKResult, Skeleton, forward_kinematics
+from motion.geometry import matrix_to_euler, rotation_angle
+from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
 from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
 
@@ -55,13 +56,13 @@ __all__ = [
     "JointDifference",
     "RegistrationSummary",
     "bvh_from_rotations",
-    "end_site_positions",
+    "end_site_positions",  # = motion.kinematics.end_site_positions_by_joint
     "joint_angles",
     "joint_flexion",
     "joints_trusted",
     "largest_differences",
     "load_registration",
-    "matrix_to_bvh_euler",
+    "matrix_to_bvh_euler",  # = motion.geometry.matrix_to_euler
     "per_joint_mean_abs_deg",
     "save_registration",
     "student_bvh",
@@ -82,31 +83,12 @@ TRUSTED_FIT = 0.5
 #: looked for (the posture estimate jitters from frame to frame by several degrees)
 SMOOTH_S = 0.2
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
+#: the End Sites ``(..., J, 3)`` by joint, NaN rows where none (kept under its old name)
+end_site_positions = end_site_positions_by_joint
+#: rotation matrices to BVH Euler angles (kept under its old name)
+matrix_to_bvh_euler = matrix_to_euler
 
 # --------------------------------------------------------------------------- flexion
-
-
-def end_site_positions(skeleton: Skeleton, fk: FKResult, scale: float = 1.0) -> Tensor:
-    """World positions of the skeleton's End Sites.
-
-    Args:
-        skeleton: the joint tree (``end_sites`` offsets in metres).
-        fk: its forward kinematics, positions ``(..., J, 3)`` metres, rotations
-            ``(..., J, 3, 3)``.
-        scale: body scale G applied to the End Site offsets (as to the bones of ``fk``).
-
-    Returns:
-        ``(..., J, 3)`` metres: row ``j`` is the End Site of joint ``j``, NaN where joint ``j``
-        has none.
-    """
-    pos = fk.positions
-    out = torch.full_like(pos, math.nan)
-    if skeleton.end_sites:
-        idx = torch.tensor(sorted(skeleton.end_sites), dtype=torch.long)
-        offs = torch.stack([skeleton.end_sites[j] for j in idx.tolist()]).to(pos) * scale
-        tips = pos[..., idx, :] + (fk.rotations[..., idx, :, :] @ offs[:, :, None]).squeeze(-1)
-        out[..., idx, :] = tips
-    return out
 
 
 def _outgoing_candidates(parents: list[int], has_end: list[bool], through: bool) -> Tensor:
@@ -158,7 +140,8 @@ def joint_flexion(
         positions: ``(..., J, 3)`` joint positions (any length unit), e.g.
             :attr:`motion.kinematics.FKResult.positions`.
         parents: ``(J,)`` parent index per joint, -1 for the root; parents before children.
-        end_sites: optional ``(..., J, 3)`` End Site positions (:func:`end_site_positions`),
+        end_sites: optional ``(..., J, 3)`` End Site positions
+            (:func:`motion.kinematics.end_site_positions_by_joint`),
             NaN rows for joints without one; used as children where present.
         tol: bones no longer than this (positions' unit) count as zero length.
         through_zero_bones: look past zero-length children (see above).
@@ -339,15 +322,6 @@ def _angle_uncertainty(
     return torch.stack(columns, 1)
 
 
-def _rotation_angle_deg(rotation: Tensor) -> Tensor:
-    """``(...,)`` the angle of rotations ``(..., 3, 3)``, degrees in [0, 180] (from the
-    skew part and the trace: accurate near 0 and near 180)."""
-    skew = rotation - rotation.transpose(-1, -2)
-    sin = 0.5 * torch.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], -1).norm(dim=-1)
-    cos = 0.5 * (rotation.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
-    return torch.rad2deg(torch.atan2(sin, cos))
-
-
 def joint_angles(
     reg: Registration,
     reference: Reference,
@@ -391,7 +365,7 @@ def joint_angles(
         reference_deg=ref.degrees[:, keep],
         student_deg=stu.degrees[:, keep],
         difference_deg=torch.remainder(difference + 180.0, 360.0) - 180.0,
-        articulation_deg=_rotation_angle_deg(change),
+        articulation_deg=torch.rad2deg(rotation_angle(change)),
         uncertainty_deg=_angle_uncertainty(reg, reference, segments, names),
         first_frame=first_frame,
         frame_step=frame_step,
@@ -700,40 +674,6 @@ def write_mot(angles: JointAngles, path: str | Path, name: str | None = None) ->
 # --------------------------------------------------------------------------- BVH
 
 
-def matrix_to_bvh_euler(matrix: Tensor, order: str) -> Tensor:
-    """Rotation matrices to intrinsic Euler angles: the inverse of
-    :func:`motion.kinematics.euler_to_matrix`, ``R = R_o0(a) R_o1(b) R_o2(c)``.
-
-    Robust at and near gimbal lock: the middle angle is ``atan2(s, c)`` of two
-    well-conditioned entries (never an ``asin`` near 1), and the last angle is solved with
-    the first one removed (Day, "Converting a rotation matrix to Euler angles", 2012), so the
-    angles reproduce the matrix to rounding error for every rotation. At exact lock (cosine
-    of the middle angle below 1e-12) the first angle is 0.
-
-    Args:
-        matrix: ``(..., 3, 3)`` rotation matrices.
-        order: three distinct axes in BVH channel order, e.g. ``"ZYX"``.
-
-    Returns:
-        ``(..., 3)`` radians in ``order``: first and last in ``(-pi, pi]``, middle in
-        ``[-pi/2, pi/2]``.
-    """
-    if len(order) != 3 or set(order) != {"X", "Y", "Z"}:
-        raise ValueError(f"rotation order must be a permutation of 'XYZ'; got {order!r}")
-    perm = [_AXIS[a] for a in order]
-    even = (perm[1] - perm[0]) % 3 == 1
-    # in the permuted basis the rotation is Rx Ry Rz, angles negated for an odd permutation
-    m = matrix[..., perm, :][..., :, perm]
-    cos_b = torch.hypot(m[..., 0, 0], m[..., 0, 1])
-    b = torch.atan2(m[..., 0, 2], cos_b)
-    a = torch.atan2(-m[..., 1, 2], m[..., 2, 2])
-    a = torch.where(cos_b < 1e-12, torch.zeros_like(a), a)
-    sa, ca = torch.sin(a), torch.cos(a)
-    c = torch.atan2(ca * m[..., 1, 0] + sa * m[..., 2, 0], ca * m[..., 1, 1] + sa * m[..., 2, 1])
-    angles = torch.stack([a, b, c], -1)
-    return (angles if even else -angles) + 0.0  # + 0.0: no negative zeros in files
-
-
 def bvh_from_rotations(
     hierarchy: BVH,
     metres_per_unit: float,
@@ -758,7 +698,7 @@ def bvh_from_rotations(
 
     Returns:
         :class:`motion.bvh.BVH` (``path`` = ``hierarchy.path``). Rotation channels hold the
-        Euler angles (:func:`matrix_to_bvh_euler`, degrees) in each joint's channel order;
+        Euler angles (:func:`motion.geometry.matrix_to_euler`, degrees) in each joint's channel order;
         root position channels ``root_position / metres_per_unit - scale * OFFSET``; other
         joints' position channels their scaled OFFSET.
 
@@ -799,7 +739,7 @@ def bvh_from_rotations(
                     "rotation channels; 3 or none are supported"
                 )
             order = "".join(chans[i][0] for i in rot)
-            deg = torch.rad2deg(matrix_to_bvh_euler(rotations[:, joint], order)).numpy()
+            deg = torch.rad2deg(matrix_to_euler(rotations[:, joint], order)).numpy()
             motion[:, [col + i for i in rot]] = deg
         else:
             off = float((rotations[:, joint] - eye).abs().amax()) if t else 0.0

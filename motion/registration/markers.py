@@ -65,8 +65,8 @@ import torch
 
 from motion.bodyparts import HAND_END_M, load_spec
 from motion.bvh import BVH, write_bvh
+from motion.geometry import matrix_to_euler
 from motion.keypoints import Markers, read_trc
-from motion.kinematics import matrix_to_euler
 from motion.registration.types import Reference, RegistrationError
 
 __all__ = [

@@ -9,9 +9,12 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from motion.bvh import read_bvh
+from motion.geometry import RotationOrderError
 from motion.kinematics import (
     Skeleton,
     SkeletonError,
+    end_site_positions,
+    end_site_positions_by_joint,
     euler_to_matrix,
     forward_kinematics,
     local_from_global,
@@ -22,6 +25,7 @@ from tests.conftest import SHARED_DATA, requires_shared_data
 from tests.motion.test_bvh import BUNDLED, SHARED_FILES
 
 ORDERS = ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"]
+F64 = torch.float64
 
 
 def _walk(frames=slice(1, 40)):
@@ -168,6 +172,9 @@ def test_skeleton_errors():
     with pytest.raises(SkeletonError, match=r"repeated: \['a'\]"):
         Skeleton(["a", "a"], torch.tensor([-1, 0]), torch.zeros(2, 3), ["", ""])
     with pytest.raises(SkeletonError, match="permutation of 'XYZ'"):
+        Skeleton(["a", "b"], torch.tensor([-1, 0]), torch.zeros(2, 3), ["", "XXY"])
+    # the Euler conversions (motion.geometry, re-exported here) raise their own ValueError
+    with pytest.raises(RotationOrderError, match="permutation of 'XYZ'"):
         euler_to_matrix(torch.zeros(3), "XXY")
     _, skel, _ = _walk()
     with pytest.raises(SkeletonError, match=r"rotations must be \(\.\.\., 31, 3, 3\)"):
@@ -205,3 +212,39 @@ def test_every_shared_file_animates(name):
     torch.testing.assert_close(bones, skel.offsets[child].norm(dim=-1).expand_as(bones))
     span = (fk.positions[..., 1].amax(-1) - fk.positions[..., 1].amin(-1)).median()
     assert 0.9 < span < 2.2, span
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_end_sites_in_both_layouts(dtype):
+    """``p_j + G_j (scale o)`` per End Site, in ``end_sites`` order (any dict order) and by
+    joint (NaN rows elsewhere); the old names in bodyparts and export are these functions."""
+    from motion import bodyparts
+    from motion.registration import export
+
+    names = ["root", "a", "b", "c", "d"]
+    g = torch.Generator().manual_seed(2)
+    ends = {4: torch.randn(3, generator=g, dtype=F64), 2: torch.randn(3, generator=g, dtype=F64)}
+    skel = Skeleton(
+        names,
+        torch.tensor([-1, 0, 1, 0, 3]),
+        torch.randn(5, 3, generator=g, dtype=F64),
+        ["ZYX"] * 5,
+        end_sites=ends,
+    )
+    rot = euler_to_matrix(torch.randn(6, 5, 3, generator=g, dtype=F64), "ZYX").to(dtype)
+    fk = forward_kinematics(skel, rot, torch.randn(6, 3, generator=g, dtype=dtype))
+    got = end_site_positions(skel, fk, 1.5)
+    assert got.shape == (6, 2, 3) and got.dtype == dtype
+    for row, (j, off) in enumerate(ends.items()):
+        want = fk.positions[:, j] + (fk.rotations[:, j] @ (off.to(dtype) * 1.5)[:, None])[..., 0]
+        torch.testing.assert_close(got[:, row], want)
+    by_joint = end_site_positions_by_joint(skel, fk, 1.5)
+    assert by_joint.shape == (6, 5, 3)
+    torch.testing.assert_close(by_joint[:, [4, 2]], got, atol=0, rtol=0)
+    assert by_joint[:, [0, 1, 3]].isnan().all()
+    bare = Skeleton(names, skel.parents, skel.offsets, skel.rotation_orders)
+    assert end_site_positions(bare, fk).shape == (6, 0, 3)
+    assert end_site_positions_by_joint(bare, fk).isnan().all()
+    assert bodyparts.end_site_positions is end_site_positions
+    assert export.end_site_positions is end_site_positions_by_joint
+    assert export.matrix_to_bvh_euler is matrix_to_euler
