@@ -12,6 +12,9 @@
   python -m motion demo [--out DIR]
       the main job on bundled data: a synthetic video of one walker registered against another
 
+Installed (pip install), the same commands are the console script `motionreg`:
+`motionreg register ...` is `python -m motion register ...`.
+
 Bad input prints one line, "error: ...", to stderr and exits with status 2; --debug shows
 the traceback as well.
 """
@@ -42,7 +45,10 @@ from motion.registration.cli import (
 from motion.settings import describe
 from motion.synth import SynthConfig, save_sequence, sequence_files, synthesize
 
-__all__ = ["info", "main", "parse_overrides"]
+__all__ = ["CONSOLE_SCRIPT", "info", "main", "parse_overrides"]
+
+#: the console script of pyproject's ``[project.scripts]``, which runs :func:`main`
+CONSOLE_SCRIPT = "motionreg"
 
 
 def _body_lines(model: BodyModel) -> list[str]:
@@ -101,8 +107,15 @@ def _synth_epilog() -> str:
     )
 
 
-def _parser() -> Parser:
-    parser = Parser(prog="python -m motion", description=__doc__)
+def _prog() -> str:
+    """How the user called the command line, for its help and messages: ``motionreg``
+    when run as the console script, else ``python -m motion``."""
+    called = Path(sys.argv[0]).stem if sys.argv and sys.argv[0] else ""
+    return CONSOLE_SCRIPT if called == CONSOLE_SCRIPT else "python -m motion"
+
+
+def _parser(prog: str = "python -m motion") -> Parser:
+    parser = Parser(prog=prog, description=__doc__)
     add_debug(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="{info,synth,register,demo}")
     p_info = sub.add_parser(
@@ -165,8 +178,9 @@ def _command(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line (``argv`` without the program name); returns the exit status."""
-    return run(_parser(), argv, _command)
+    """Run the command line (``argv`` without the program name); returns the exit status.
+    The console script ``motionreg`` (pyproject's ``[project.scripts]``) calls it."""
+    return run(_parser(_prog()), argv, _command)
 
 
 if __name__ == "__main__":

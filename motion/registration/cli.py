@@ -1,21 +1,24 @@
 """The ``register`` and ``demo`` sub-commands of ``python -m motion`` (parsers and bodies).
 
 ``register`` is :func:`motion.registration.command.run_register` on the command line's
-files; ``demo`` renders a synthetic student video from the bundled walk of one performer
-(``motion synth``, with its ``calibration.toml``) and registers the bundled walk of another
-against it, as a user would, then prints where the report is.
+files (or, with ``--write-config PATH``, writes every setting with its default and meaning
+to a YAML file for ``--config``: :func:`motion.registration.config.config_template`);
+``demo`` renders a synthetic student video from the bundled walk of one performer (``motion
+synth``, with its ``calibration.toml``) and registers the bundled walk of another against
+it, as a user would, then prints where the report is.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import textwrap
 from pathlib import Path
 
 from motion.cli import UsageError, add_debug
 from motion.registration.command import RegisterJob, run_register, summary_lines
-from motion.registration.config import RegisterConfig
+from motion.registration.config import RegisterConfig, config_template, load_config
 from motion.synth import (
     BACKGROUND_SUFFIX,
     CALIBRATION_FILE,
@@ -24,7 +27,13 @@ from motion.synth import (
     synthesize,
 )
 
-__all__ = ["add_demo_parser", "add_register_parser", "demo_command", "register_command"]
+__all__ = [
+    "add_demo_parser",
+    "add_register_parser",
+    "demo_command",
+    "register_command",
+    "write_config",
+]
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 #: the demo's reference and student: two performers of the same action (CMU 02_01, 07_01)
@@ -78,12 +87,15 @@ def _register_epilog() -> str:
         _settings_lines(cfg.video, "video.")
         + _settings_lines(cfg.perception, "perception.")
         + _settings_lines(cfg.registration)
+        + _settings_lines(cfg.movement, "movement.")
+        + _settings_lines(cfg.findings, "findings.")
     )
     return "\n".join(
         [
             EXAMPLE,
             "settings (key=value after the options, or the same keys in --config YAML; values "
-            "are read as YAML; the stages' docstrings in motion/registration/ explain each):",
+            "are read as YAML; the stages' docstrings in motion/registration/ explain each, "
+            "and --write-config PATH writes them all with their meanings):",
             *keys,
         ]
     )
@@ -99,9 +111,31 @@ def _person(text: str) -> tuple[float, float]:
     return x, y
 
 
+#: the two forms of ``register`` (``--reference``, ``--video`` and ``--out`` are required
+#: unless ``--write-config`` is given: :func:`register_command` checks)
+REGISTER_USAGE = """\
+%(prog)s [-h] [--debug] --reference REFERENCE --video VIDEO
+           [--calibration CALIBRATION] [--config CONFIG] [--person X,Y]
+           [--background BACKGROUND] [--keypoints KEYPOINTS] --out OUT [--quiet]
+           [key=value ...]
+       %(prog)s --write-config PATH [--force] [--config CONFIG] [key=value ...]"""
+
+#: the options that only a registration takes (not ``--write-config``)
+REGISTRATION_ONLY = (
+    ("--reference", "reference"),
+    ("--video", "video"),
+    ("--out", "out"),
+    ("--calibration", "calibration"),
+    ("--person", "person"),
+    ("--background", "background"),
+    ("--keypoints", "keypoints"),
+)
+
+
 def add_register_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "register",
+        usage=REGISTER_USAGE,
         help="register a reference motion to video: time warp, body transform, joint differences",
         description=textwrap.fill(
             "Register a 3-D reference motion (BVH) to a video of a student doing the same "
@@ -114,12 +148,12 @@ def add_register_parser(sub) -> argparse.ArgumentParser:
         epilog=_register_epilog(),
     )
     add_debug(p, top=False)
-    p.add_argument("--reference", type=Path, required=True, help="the reference motion (BVH)")
+    p.add_argument("--reference", type=Path, default=None, help="the reference motion (BVH)")
     p.add_argument(
         "--video",
         type=Path,
         action="append",
-        required=True,
+        default=None,
         help="a video of the student; repeat for each synchronised camera",
     )
     p.add_argument(
@@ -153,13 +187,81 @@ def add_register_parser(sub) -> argparse.ArgumentParser:
         help="2-D joints as an extra observation: an OpenPose JSON folder or a Sports2D TRC "
         "per camera (repeat, in the --video order), or one folder of per-camera JSON folders",
     )
-    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--write-config",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="register nothing: write every setting with its default value and meaning to "
+        "PATH, a YAML file to edit and give back with --config (with --config and key=value "
+        "settings, their values); an existing PATH is kept unless --force",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="with --write-config: replace an existing PATH"
+    )
     p.add_argument("overrides", nargs="*", default=[], help="key=value settings (listed below)")
+    p.set_defaults(register_prog=p.prog)
     return p
 
 
+def write_config(path: Path, cfg: RegisterConfig | None = None, force: bool = False) -> Path:
+    """Write :func:`config_template` of ``cfg`` (default: the defaults) to ``path``; an
+    existing file is replaced only with ``force``. Raises ``OSError`` naming ``path`` (its
+    folder missing, it exists, it is a folder). Returns ``path``."""
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        why = "is not a folder" if folder.exists() else "does not exist"
+        raise FileNotFoundError(
+            errno.ENOENT, f"cannot write it: the folder {folder} {why}", str(path)
+        )
+    if path.is_dir():
+        raise IsADirectoryError(
+            errno.EISDIR,
+            "is a folder; give the settings file's name (e.g. settings.yaml)",
+            str(path),
+        )
+    text = config_template(cfg)
+    try:
+        with open(path, "w" if force else "x", encoding="utf-8") as out:
+            out.write(text)
+    except FileExistsError:
+        raise FileExistsError(
+            errno.EEXIST, "already exists; --force replaces it", str(path)
+        ) from None
+    return path
+
+
+def _usage_error(args: argparse.Namespace, message: str) -> UsageError:
+    prog = args.register_prog
+    return UsageError(f"{prog}: {message} (see {prog} --help)")
+
+
+def write_config_command(args: argparse.Namespace) -> int:
+    """``register --write-config PATH``: the settings file, no registration."""
+    given = [option for option, dest in REGISTRATION_ONLY if getattr(args, dest)]
+    if given:
+        raise _usage_error(
+            args,
+            f"--write-config writes a settings file and registers nothing; leave out "
+            f"{', '.join(given)}",
+        )
+    cfg = load_config(args.config, list(args.overrides))
+    path = write_config(args.write_config, cfg, force=args.force)
+    print(f"wrote the settings of motion register to {path} (give it back with --config {path})")
+    return 0
+
+
 def register_command(args: argparse.Namespace) -> int:
+    if args.write_config is not None:
+        return write_config_command(args)
+    if args.force:
+        raise _usage_error(args, "--force goes with --write-config (it replaces that file)")
+    missing = [o for o, dest in REGISTRATION_ONLY[:3] if getattr(args, dest) is None]
+    if missing:
+        raise _usage_error(args, f"the following arguments are required: {', '.join(missing)}")
     job = RegisterJob(
         args.reference,
         list(args.video),

@@ -9,12 +9,20 @@ fields by name. A key is a dotted path through those dataclasses -- ``seed``, ``
 in a YAML mapping (nested or dotted) or as ``key=value`` on the command line (the value is
 read as YAML: ``true``, ``3``, ``0.5``, ``none``, ``[1, 2]``). A key that is not a field, or
 a value of another type than the field's, is a :class:`ConfigError` naming it.
+
+:func:`config_template` writes every setting as such a YAML file, each with its value and its
+meaning as a comment (``motion register --write-config PATH``); read back by
+:func:`load_config` it gives the same settings.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import inspect
+import itertools
+import re
+import textwrap
 import types
 import typing
 from collections.abc import Mapping
@@ -29,7 +37,15 @@ from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
 from motion.registration.video import VideoSettings
 
-__all__ = ["ConfigError", "RegisterConfig", "load_config", "override", "settings_dict"]
+__all__ = [
+    "ConfigError",
+    "RegisterConfig",
+    "config_template",
+    "load_config",
+    "override",
+    "settings_dict",
+    "user_key",
+]
 
 
 class ConfigError(ValueError):
@@ -191,6 +207,7 @@ def _user_keys() -> list[str]:
         + _leaf_keys(cfg.perception, "perception.")
         + _leaf_keys(cfg.registration)
         + _leaf_keys(cfg.movement, "movement.")
+        + _leaf_keys(cfg.findings, "findings.")
     )
 
 
@@ -212,8 +229,8 @@ def _unknown(obj, item: _Item, fields) -> ConfigError:
     hint = f" (did you mean {' or '.join(close)}?)" if close else ""
     if isinstance(obj, RegisterConfig):
         known = (
-            "video.*, perception.*, stage1.*, refine.*, movement.*, scale, seed (python -m "
-            "motion register --help)"
+            "video.*, perception.*, stage1.*, refine.*, movement.*, findings.*, scale, seed "
+            "(python -m motion register --help)"
         )
     else:
         known = ", ".join(sorted(walked + n for n in fields))
@@ -335,3 +352,276 @@ def load_config(
 def settings_dict(cfg: RegisterConfig) -> dict:
     """The settings as plain data (for ``summary.json``)."""
     return dataclasses.asdict(cfg)
+
+
+# -- the settings template (motion register --write-config) ----------------------------------
+#: longest meaning taken from a docstring (characters) before it is cut at a clause
+BRIEF_LIMIT = 240
+#: the comment lines' width
+TEMPLATE_WIDTH = 100
+
+TEMPLATE_HEADER = """\
+# Settings of `motion register` (python -m motion register, or motionreg register), each at
+# its value here with its meaning above it. Give the file back with --config FILE: a key
+# left out keeps its default, so you may keep only what you change. The same keys, dotted,
+# may follow the command line's options as key=value (refine.particles=60): those win over
+# the file. Values are YAML (null: none). A line "# key: VALUE (not settable in a file)" is
+# a setting only Python code can change. Each group names the class whose docstring
+# explains its settings in full."""
+
+_NAMES = r"[a-z_][a-z0-9_]*(?:,\s*[a-z_][a-z0-9_]*)*"
+_ENTRY = re.compile(rf"^(\s*)({_NAMES}):(?:\s+(.*))?$")
+#: a second entry on the same line as another's: ``particles: K per part. iterations,
+#: restarts: particle BP passes``
+_INNER_ENTRY = re.compile(rf"(?<=\.)\s+({_NAMES}):\s")
+_ROLE = re.compile(r":[a-z]+:`(~?)([^`]+)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def user_key(key: str) -> str:
+    """A dotted key of :class:`RegisterConfig` as the user writes it (the pipeline's
+    settings by their shortcut: ``registration.refine.particles`` -> ``refine.particles``)."""
+    head, _, rest = key.partition(".")
+    if head == "registration" and rest.partition(".")[0] in _SHORTCUTS:
+        return rest
+    return key
+
+
+def _plain(text: str) -> str:
+    """Docstring text as plain words on one line (``:class:`~a.B``` -> ``B``, literals
+    unquoted)."""
+    text = _ROLE.sub(lambda m: m[2].rpartition(".")[2] if m[1] else m[2], text)
+    return " ".join(_LITERAL.sub(r"\1", text).split())
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(n.strip() for n in text.split(","))
+
+
+@dataclass(frozen=True)
+class _Doc:
+    """A field's meaning: ``names`` are the fields one docstring entry documents together
+    (the comment is written once above the first of them), ``text`` the comment."""
+
+    names: tuple[str, ...]
+    text: str
+
+
+def _docstring(cls: type) -> tuple[list[_Doc], str]:
+    """The entries of a dataclass's docstring (``name: meaning`` lines under
+    ``Attributes:`` or any heading; ``a, b: meaning`` documents both; an entry's further
+    lines indented deeper), and the rest of its text, all as plain text."""
+    fields = {f.name for f in dataclasses.fields(cls)}
+    raw: list[tuple[tuple[str, ...], list[str]]] = []
+    prose: list[str] = []
+    indent = None  # of the entry being read
+    for line in inspect.cleandoc(cls.__doc__ or "").splitlines():
+        m = _ENTRY.match(line)
+        if m and set(_names(m[2])) <= fields:
+            raw.append((_names(m[2]), [m[3] or ""]))
+            indent = len(m[1])
+        elif indent is not None and line.strip() and len(line) - len(line.lstrip()) > indent:
+            raw[-1][1].append(line.strip())
+        else:
+            indent = None
+            prose.append(line)
+    entries: list[_Doc] = []
+    for names, parts in raw:
+        text = _plain(" ".join(parts))
+        while True:  # entries written on the same line as this one
+            inner = next(
+                (m for m in _INNER_ENTRY.finditer(text) if set(_names(m[1])) <= fields), None
+            )
+            if inner is None:
+                break
+            entries.append(_Doc(names, text[: inner.start()].strip()))
+            names, text = _names(inner[1]), text[inner.end() :]
+        entries.append(_Doc(names, text.strip()))
+    return entries, _plain(" ".join(prose))
+
+
+def _depth_zero(text: str, chars: str) -> list[int]:
+    """Positions of ``chars`` outside brackets followed by a space or the end."""
+    depth, out = 0, []
+    for i, ch in enumerate(text):
+        if ch in "([":
+            depth += 1
+        elif ch in ")]":
+            depth = max(depth - 1, 0)
+        elif depth == 0 and ch in chars and text[i + 1 : i + 2] in ("", " "):
+            out.append(i)
+    return out
+
+
+def _sentences(text: str) -> list[str]:
+    """``text`` split after each full stop (outside brackets) that a capital or the end
+    follows."""
+    out, start = [], 0
+    for i in _depth_zero(text, "."):
+        if i + 2 >= len(text) or text[i + 2].isupper():
+            out.append(text[start : i + 1].strip())
+            start = i + 1
+    rest = text[start:].strip()
+    return [*out, rest] if rest else out
+
+
+def _brief(text: str, limit: int = BRIEF_LIMIT) -> str:
+    """The first sentence of ``text`` without its full stop; one longer than ``limit`` is
+    cut at its last ``:`` or ``;`` (outside brackets) before it, else at a space, and ends
+    with ``...``."""
+    first = (_sentences(text) or [""])[0]
+    if len(first) <= limit:
+        return first.removesuffix(".")
+    cuts = [i for i in _depth_zero(first, ":;") if i <= limit] or [
+        i for i, ch in enumerate(first[: limit + 1]) if ch == " "
+    ]
+    return (first[: cuts[-1]] if cuts else first[:limit]).rstrip(" ,") + " ..."
+
+
+def _mention(name: str, text: str, limit: int = BRIEF_LIMIT) -> str | None:
+    """The first sentence of ``text`` that names ``name`` (or its clause between ``;``,
+    when the sentence is longer than ``limit``)."""
+    word = re.compile(rf"\b{re.escape(name)}\b")
+    for sentence in _sentences(text):
+        if not word.search(sentence):
+            continue
+        if len(sentence) <= limit:
+            return sentence.removesuffix(".")
+        cuts = [-1, *_depth_zero(sentence, ";"), len(sentence)]
+        for lo, hi in itertools.pairwise(cuts):
+            clause = sentence[lo + 1 : hi].strip()
+            if word.search(clause) and len(clause) <= limit:
+                return clause.removesuffix(".")
+    return None
+
+
+def _mentioned(name: str, entries: list[_Doc], prose: str) -> str:
+    """What the docstring says of a field without an entry of its own: the sentence of
+    another entry that names it (``with OTHER: ...``; ``see OTHER`` where that is too
+    long), else of the docstring's text, else nothing."""
+    word = re.compile(rf"\b{re.escape(name)}\b")
+    for entry in entries:
+        if word.search(entry.text):
+            other = ", ".join(entry.names)
+            found = _mention(name, entry.text)
+            return f"with {other}: {found}" if found else f"see {other}"
+    return _mention(name, prose) or ""
+
+
+def _field_docs(cls: type) -> dict[str, _Doc]:
+    """Field name -> its meaning: a settings field's own (:func:`motion.settings.setting`),
+    else the first sentence of its docstring entry, else the sentence of another field's
+    entry (or of the docstring's text) that names it, else nothing."""
+    entries, prose = _docstring(cls)
+    own: dict[str, _Doc] = {}
+    for entry in entries:
+        for name in entry.names:
+            own.setdefault(name, entry)
+    docs = {}
+    for f in dataclasses.fields(cls):
+        spec = f.metadata.get("setting")
+        if spec is not None and spec.doc:
+            docs[f.name] = _Doc((f.name,), spec.doc)
+        elif f.name in own:
+            entry = own[f.name]
+            names = f"{', '.join(entry.names)}: " if len(entry.names) > 1 else ""
+            docs[f.name] = _Doc(entry.names, names + _brief(entry.text))
+        else:
+            docs[f.name] = _Doc((f.name,), _mentioned(f.name, entries, prose))
+    return docs
+
+
+def _yaml_value(value) -> str | None:
+    """``value`` in YAML's flow style (``0.002``, ``mog2``, ``[1.0, 0.85]``, ``null``), or
+    ``None`` when YAML cannot hold it (a ``torch.dtype``, a schedule object)."""
+
+    def plain(v):
+        if v is None or isinstance(v, bool | int | float | str):
+            return v
+        if isinstance(v, list | tuple):
+            return [plain(x) for x in v]
+        if isinstance(v, dict) and all(isinstance(k, str) for k in v):
+            return {k: plain(x) for k, x in v.items()}
+        raise TypeError(type(v).__name__)
+
+    try:
+        data = plain(value)
+    except TypeError:
+        return None
+    text = yaml.safe_dump(data, default_flow_style=True, width=10**9, sort_keys=False)
+    return text.removesuffix("...\n").strip()
+
+
+def _comment(text: str, indent: str) -> list[str]:
+    width = max(TEMPLATE_WIDTH - len(indent) - 2, 40)
+    return [f"{indent}# {line}" for line in textwrap.wrap(text, width, break_on_hyphens=False)]
+
+
+def _group_doc(doc: str, cls: type) -> str:
+    """A group's meaning naming its class in full (``stages 2-3
+    (motion.registration.refine.RefineSettings)``)."""
+    full = f"{cls.__module__}.{cls.__qualname__}"
+    if re.search(rf"\b{cls.__name__}\b", doc):
+        return re.sub(rf"\b{cls.__name__}\b", full, doc, count=1)
+    return f"{doc} -- {full}" if doc else full
+
+
+def _template_lines(obj, default, depth: int, only: tuple[str, ...] | None = None) -> list[str]:
+    """The lines of the fields of the settings dataclass ``obj`` (``only``: those fields),
+    ``depth`` levels deep; a value other than ``default``'s says the default."""
+    indent = "  " * depth
+    docs = _field_docs(type(obj))
+    lines: list[str] = []
+    shared: tuple[str, ...] = ()  # the names of the comment just written
+    for f in dataclasses.fields(obj):
+        if only is not None and f.name not in only:
+            continue
+        value, base = getattr(obj, f.name), getattr(default, f.name, None)
+        doc = docs[f.name]
+        if depth == 0:
+            lines.append("")
+        if dataclasses.is_dataclass(value):
+            inner = _template_lines(value, base if type(base) is type(value) else value, depth + 1)
+            settable = any(line.strip() and not line.lstrip().startswith("#") for line in inner)
+            lines += _comment(_group_doc(doc.text, type(value)), indent)
+            lines.append(f"{indent}{'' if settable else '# '}{f.name}:")
+            lines += inner
+            shared = ()
+            continue
+        if not (len(doc.names) > 1 and doc.names == shared):
+            lines += _comment(doc.text, indent)
+        shared = doc.names
+        text = _yaml_value(value)
+        if text is None:
+            lines.append(f"{indent}# {f.name}: {value!r} (not settable in a file)")
+            continue
+        line = f"{indent}{f.name}: {text}"
+        if repr(value) != repr(base):
+            line += f"  # default: {_yaml_value(base) or repr(base)}"
+        lines.append(line)
+    return lines
+
+
+def config_template(cfg: RegisterConfig | None = None) -> str:
+    """Every setting of ``motion register`` as YAML: grouped as the user writes the keys
+    (``video``, ``perception``, ``stage1``, ``refine``, ``scale``, ``seed``, ``movement``,
+    ``findings``), each with its meaning as a comment above it and its value in ``cfg``
+    (default: the defaults; a value that is not the default says which is). :func:`load_config`
+    reads it back to ``cfg``; the settings YAML cannot hold (a ``torch.dtype``, a schedule)
+    are commented out."""
+    cfg = RegisterConfig() if cfg is None else cfg
+    default = RegisterConfig()
+    lines = TEMPLATE_HEADER.splitlines()
+    for f in dataclasses.fields(RegisterConfig):
+        if f.name != "registration":
+            lines += _template_lines(cfg, default, 0, only=(f.name,))
+            continue
+        # the pipeline's settings at the top level, as the user writes them (seed=1)
+        names = [g.name for g in dataclasses.fields(cfg.registration)]
+        shortcuts = tuple(n for n in names if n in _SHORTCUTS)
+        lines += _template_lines(cfg.registration, default.registration, 0, only=shortcuts)
+        if len(shortcuts) < len(names):  # settings without a shortcut: under registration
+            rest = tuple(n for n in names if n not in _SHORTCUTS)
+            lines += ["", "registration:"]
+            lines += _template_lines(cfg.registration, default.registration, 1, only=rest)
+    return "\n".join(lines) + "\n"
