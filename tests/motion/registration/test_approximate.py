@@ -18,7 +18,6 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from motion.body.observation import Observation
 from motion.cameras import CameraRig
 from motion.features import distance_to_edges
-from motion.registration import approximate
 from motion.registration.approximate import (
     PairFit,
     Stage1Result,
@@ -28,6 +27,9 @@ from motion.registration.approximate import (
     fit_rigid_pairs,
     pair_costs,
 )
+from motion.registration.approximate import scene as scene_module
+from motion.registration.approximate.pairs import _heading_penalty
+from motion.registration.approximate.scene import _build_scene
 from motion.registration.types import Reference, RegistrationError, VideoFeatures
 from motion.render import label_map, project_parts
 from motion.synth import SynthConfig, synthesize
@@ -288,11 +290,9 @@ def test_heading_prior_tells_front_from_back_not_the_exact_heading(reference, wa
     cands = (turn[None] @ rot[rows][:, None]).float()  # (R, 3, 3, 3)
     for tolerance, expected in ((60.0, (0, 0, 1)), (0.0, (0, (1 - math.cos(0.698)) / 2, 1))):
         settings = Stage1Settings(heading_tolerance_deg=tolerance)
-        scene = approximate._build_scene(
-            reference, video, 1.0, settings, torch.Generator().manual_seed(0)
-        )
+        scene = _build_scene(reference, video, 1.0, settings, torch.Generator().manual_seed(0))
         paid = (
-            approximate._heading_penalty(
+            _heading_penalty(
                 scene, rows[:, None].expand(-1, 3), c_true[rows][:, None].expand(-1, 3), cands
             )
             / settings.heading_weight
@@ -417,9 +417,9 @@ def test_scene_built_in_chunks_of_frames_is_the_same(reference, fixture, request
     video = _video(request.getfixturevalue(fixture))
     scenes, states = [], []
     for chunk in (1000, 5):  # all 72 frames at once; then 15 chunks, the last one short
-        monkeypatch.setattr(approximate, "FRAME_CHUNK", chunk)
+        monkeypatch.setattr(scene_module, "FRAME_CHUNK", chunk)
         g = torch.Generator().manual_seed(4)
-        scenes.append(approximate._build_scene(reference, video, 1.0, Stage1Settings(), g))
+        scenes.append(_build_scene(reference, video, 1.0, Stage1Settings(), g))
         states.append(g.get_state())
     whole, chunked = scenes
     names = "dout edist obs obs_w height cam_w centroid top_v clipped side_clipped".split()
