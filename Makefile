@@ -30,12 +30,10 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
+# every benchmarks/bench_*.py, each in its own process; writes docs/benchmarks.md from their
+# figures (`make bench BENCH=--quick`: each one's smaller problem)
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_alignment.py
-	$(BIN)/python benchmarks/bench_render.py
-	$(BIN)/python benchmarks/bench_particle_bp.py
-	$(BIN)/python benchmarks/bench_observation.py
-	$(BIN)/python benchmarks/bench_perception.py
+	$(BIN)/python benchmarks/report.py $(BENCH)
 
 clean:
 	rm -rf $(VENV)

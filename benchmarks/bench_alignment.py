@@ -13,7 +13,11 @@ a periodic motion (a walk against a reference that repeats one 130-frame gait lo
 before issue 13) in the same run. On the loop, C is scored modulo the loop (a reference that
 repeats one loop tells its copies apart only by the path).
 
-Usage: python benchmarks/bench_alignment.py [--repeats N] [--skip-anchors]
+Usage: python benchmarks/bench_alignment.py [--repeats N] [--skip-anchors] [--quick]
+       [--json PATH]
+
+``--quick``: 2 timed rounds instead of 5. ``--json PATH``: also write the figures as rows for
+``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ import time
 
 import numpy as np
 import torch
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
-from experiments.runtime import retain_freed_memory
 from motion.alignment import (
     chain_align,
     coarse_to_fine_align,
@@ -34,6 +38,12 @@ from motion.alignment import (
     sequence_cost_fn,
     slope_step_cost,
 )
+from motion.runtime import retain_freed_memory
+
+#: ``--quick``: fewer timed rounds
+QUICK = {"repeats": 2}
+#: (ours, anchor) pairs of the throughput rows written with ``--json``
+RATIOS = (("chain f32", "dtaidistance"), ("dtw", "dtaidistance"), ("chain f32", "tslearn"))
 
 
 def best_times(fns: dict, repeats: int) -> dict[str, float]:
@@ -50,13 +60,15 @@ def best_times(fns: dict, repeats: int) -> dict[str, float]:
     return best
 
 
-def main() -> None:
-    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its tables; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
+    retain_freed_memory()  # process-wide allocator setting (motion/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-anchors", action="store_true", help="skip dtaidistance/tslearn")
     parser.add_argument("--max-step", type=int, default=10)
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
 
     print(
         f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -102,6 +114,20 @@ def main() -> None:
                 f"dtw / dtaidistance = {r['dtw'] / r['dtaidistance']:.2f}x, "
                 f"chain f32 / tslearn = {r['chain f32'] / r['tslearn']:.2f}x"
             )
+    pairs = RATIOS if not args.skip_anchors else [(k, None) for k in cols[1:]]
+    results = [
+        dict(
+            case=f"{r['size']}, with path",
+            ours=ours,
+            value=r[ours] / 1e6,
+            anchor=anchor,
+            anchor_value=r[anchor] / 1e6 if anchor else None,
+            units="Mcells/s",
+            better="higher",
+        )
+        for r in rows
+        for ours, anchor in pairs
+    ]
 
     # Coarse-to-fine: 7,500 video frames (25 fps, 5 min) against 36,000 reference frames
     # (120 Hz, 5 min), 16-D features, a smooth non-linear warp of average slope 4.8.
@@ -116,7 +142,7 @@ def main() -> None:
     print(f"\ncoarse-to-fine 7,500 x 36,000 (S={args.max_step}), target < 2 s")
     print("| features | method | seconds | pairs evaluated | mean abs(C - C_true) | in phase |")
     print("|---|---|---|---|---|---|")
-    c2f_rows(sequence_cost_fn(video, ref), num_ref, true, None, {}, args)
+    results += c2f_rows(sequence_cost_fn(video, ref), num_ref, true, None, {}, args)
     # A walk against a reference repeating one gait loop of 130 frames (1.1 s at 120 Hz):
     # phase sine/cosine and harmonics; the student walks at 96 % of the reference's pace,
     # +-10 % over the 5 minutes; robust cost and a slope prior around the frame-rate ratio
@@ -135,17 +161,20 @@ def main() -> None:
         "robust": "truncate",
         "step_cost": slope_step_cost(args.max_step, 4.8, 0.02).double(),
     }
-    c2f_rows(sequence_cost_fn(student, loop), num_ref, walk, period, stage1, args)
+    results += c2f_rows(sequence_cost_fn(student, loop), num_ref, walk, period, stage1, args)
+    return write_rows(args.json, results)
 
 
-def c2f_rows(fn, num_ref: int, true, period, settings: dict, args) -> None:
+def c2f_rows(fn, num_ref: int, true, period, settings: dict, args) -> list[dict]:
     """Table rows for classic and current coarse-to-fine on one problem (C_true ``true``;
-    ``period`` scores C modulo a loop of that many reference frames)."""
+    ``period`` scores C modulo a loop of that many reference frames), printed; returns
+    them as report rows, current against classic."""
     num_video = len(true)
     methods = {
         "classic (before issue 13)": {"pool_stride": num_ref, "beam": 0},
         "min-pooled + tracking": {},
     }
+    figures = {}
     for name, extra in methods.items():
         counted = []
 
@@ -165,13 +194,34 @@ def c2f_rows(fn, num_ref: int, true, period, settings: dict, args) -> None:
         path = coarse_to_fine_align(count, num_video, num_ref, args.max_step, **kwargs).path[0]
         err = (path - true).abs().float()
         phase = "-"
+        figures[name] = {
+            "seconds": (seconds, "s", "lower"),
+            "pairs evaluated": (100 * sum(counted) / (num_video * num_ref), "% of T' x T", "lower"),
+            "mean abs(C - C_true)": (err.mean().item(), "frames", "lower"),
+        }
         if period is not None:
             off = err.remainder(period)
-            phase = f"{(torch.minimum(off, period - off) <= 5).float().mean().item():.1%} within 5"
+            in_phase = (torch.minimum(off, period - off) <= 5).float().mean().item()
+            phase = f"{in_phase:.1%} within 5"
+            figures[name]["in phase (within 5)"] = (100 * in_phase, "%", "higher")
         print(
             f"| {'loop' if period else 'smooth'} | {name} | {seconds:.2f} | "
             f"{sum(counted) / (num_video * num_ref):.3%} | {err.mean().item():.1f} | {phase} |"
         )
+    (ours, mine), (anchor, theirs) = reversed(figures.items())
+    case = f"coarse-to-fine {num_video:,} x {num_ref:,}, {'loop' if period else 'smooth'}"
+    return [
+        dict(
+            case=f"{case}: {what}",
+            ours=ours,
+            value=value,
+            anchor=anchor,
+            anchor_value=theirs[what][0],
+            units=units,
+            better=better,
+        )
+        for what, (value, units, better) in mine.items()
+    ]
 
 
 if __name__ == "__main__":

@@ -14,20 +14,22 @@ gathered -- beside two anchors measured in the same run:
   without occlusion.
 
 Usage: python benchmarks/bench_observation.py [--frames 8] [--particles 150] [--repeats 3]
-       [--device cpu|cuda]
+       [--device cpu|cuda] [--quick] [--json PATH]
+
+``--quick``: 4 frames, one round. ``--json PATH``: also write the figures as rows for
+``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
-from experiments.runtime import retain_freed_memory
 from motion.body.observation import (
     BodyObservation,
     Edges,
@@ -37,14 +39,17 @@ from motion.body.observation import (
     poses_from_segments,
 )
 from motion.bodyparts import BodyModel
+from motion.bundled import WALK_02_01 as WALK
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.render import label_map, project_parts, silhouette
+from motion.runtime import retain_freed_memory
 from pgm import SE3
 
-WALK = Path(__file__).resolve().parents[1] / "motion" / "data" / "cmu_02_01_walk.bvh"
 H, W = 120, 160
+#: ``--quick``: fewer frames, one round
+QUICK = {"frames": 4, "repeats": 1}
 
 
 def walk(frames: list[int]) -> tuple[torch.Tensor, BodyModel]:
@@ -137,14 +142,16 @@ def opencv_loop(projected, sil, dist, count: int) -> float:
     return (time.perf_counter() - t0) / count
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its table; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
     retain_freed_memory()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--particles", type=int, default=150)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cpu")
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
     device = args.device
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
     frames = list(range(30, 30 + 10 * args.frames, 10))
@@ -194,6 +201,19 @@ def main() -> None:
         sec = best[key]
         print(f"| {label} | {1 / sec:,.0f} | {sec * 1e6:.1f} | {best['cv'] / sec:.2f}x |")
     print("target: >= 25,000 per second on 2 cores and faster than the OpenCV loop")
+    results = [
+        dict(
+            case=f"{p} parts x {k} hypotheses x {t} frames at {W} x {H}, on {where}",
+            ours=label,
+            value=1 / best[key],
+            anchor=rows[-1][0],
+            anchor_value=1 / best["cv"],
+            units="part-hypotheses / s",
+            better="higher",
+        )
+        for label, key in rows[:-1]
+    ]
+    return write_rows(args.json, results)
 
 
 if __name__ == "__main__":

@@ -6,10 +6,12 @@ frames, nodes and edges (particles stay tensors), measured in the same run. The 
 cheap synthetic Gaussian around a known pose; its cost is included in both (it is small).
 
 Usage: python benchmarks/bench_particle_bp.py [--frames 80] [--particles 150] [--loop-frames 4]
-       [--repeats 3] [--device cpu|cuda]
+       [--repeats 3] [--device cpu|cuda] [--quick] [--json PATH]
 
 With ``--device cuda`` the same problem (drawn on the CPU) is solved on the GPU; the loop
-version always runs on the CPU (``--loop-frames 0`` skips it).
+version always runs on the CPU (``--loop-frames 0`` skips it). ``--quick``: 20 frames, 3
+iterations, one round, the loop version on 2 frames. ``--json PATH``: also write the figures
+as rows for ``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ import math
 import time
 
 import torch
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
-from experiments.runtime import retain_freed_memory
+from motion.runtime import retain_freed_memory
 from pgm.continuous import RigidConnection, UnaryFactor
 from pgm.particle_bp import ParticleGraph, particle_bp
 from pgm.rotations import qexp, qmul, qrotate
 from pgm.semiring import LogSemiring
 from pgm.spaces import SE3
+
+#: ``--quick``: a smaller problem, one round
+QUICK = {"frames": 20, "iterations": 3, "repeats": 1, "loop_frames": 2}
 
 # pelvis 0; torso 1, head 2; arms 3-5 / 6-8; legs 9-11 / 12-14 (parent, child)
 EDGES = torch.tensor(
@@ -168,8 +174,10 @@ def loop_iteration(values, log_w, factor, unary, generator, kernel=(0.01, 0.05))
     return new_values, new_logw
 
 
-def main() -> None:
-    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its table; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
+    retain_freed_memory()  # process-wide allocator setting (motion/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=80)
     parser.add_argument("--particles", type=int, default=150)
@@ -182,7 +190,7 @@ def main() -> None:
         help="frames run through the loop version (its time is scaled to --frames); 0: skip it",
     )
     parser.add_argument("--device", default="cpu", help="where pgm.particle_bp runs (cpu, cuda)")
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
     torch.manual_seed(0)
     device = args.device
     graph, initial, factor, truth = make_problem(args.frames, args.particles, device=device)
@@ -242,6 +250,32 @@ def main() -> None:
             f"{loop / ours[centres]:.1f}x | {errs[centres] * 100:.1f} cm |"
         )
     print("targets: >= 20x the loop version, < 0.25 s / iteration")
+    case = f"15-node SE(3) tree, K={args.particles}, {args.frames} frames, on {where}"
+    loop_name = f"Python loops over frames, nodes, edges (on {args.loop_frames} frames, scaled)"
+    results = []
+    for centres, label in ((None, "all K"), (30, "30 resampled")):
+        ours_name = f"pgm.particle_bp, proposal centres: {label}"
+        results += [
+            dict(
+                case=f"{case}: seconds per iteration",
+                ours=ours_name,
+                value=ours[centres],
+                anchor=loop_name if loops else None,
+                anchor_value=loop if loops else None,
+                units="s / iteration",
+                better="lower",
+            ),
+            dict(
+                case=f"{case}: mean position error",
+                ours=ours_name,
+                value=errs[centres] * 100,
+                anchor=None,
+                anchor_value=None,
+                units="cm",
+                better="lower",
+            ),
+        ]
+    return write_rows(args.json, results)
 
 
 if __name__ == "__main__":

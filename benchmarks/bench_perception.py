@@ -19,7 +19,10 @@ OpenPose > 0.3), with JSON file ``i`` taken for video frame ``i`` (as ``--keypoi
 them) and, for comparison, for frame ``i + 1``.
 
 Usage: python benchmarks/bench_perception.py [--frames 100] [--width 640] [--threads 2]
-       [--accuracy]
+       [--accuracy] [--quick] [--json PATH]
+
+``--quick``: 20 frames. ``--json PATH``: also write the throughput figures as rows for
+``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
 from motion.keypoints import BODY_25B, MEDIAPIPE_POSE_33
 from motion.perception import MediaPipePose, PerceptionSettings, detect_videos
@@ -44,6 +48,8 @@ OPENPOSE = DATA / "keypoints" / "pose2sim_balancing_trial" / "pose2d_openpose_bo
 #: the joints both detectors have (MediaPipe's and OpenPose's hips follow other conventions)
 JOINTS = ["LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist", "LHip", "RHip",
           "LKnee", "RKnee", "LAnkle", "RAnkle"]  # fmt: skip
+#: ``--quick``: fewer frames
+QUICK = {"frames": 20}
 VIDEOS = {
     "pose2sim cam01 (1080 x 1920)": SHARED / "pose2sim_balancing_trial" / "cam01.mp4",
     "sports2d demo (1768 x 994)": SHARED / "sports2d_demo" / "demo.mp4",
@@ -142,13 +148,16 @@ def accuracy(frames: int, width: int) -> None:
     print("  target (issue 36): median <= 8 px")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its table; returns its throughput figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--threads", type=int, default=2, help="OpenCV threads (the machine's 2)")
     ap.add_argument("--accuracy", action="store_true", help="also score against OpenPose")
-    args = ap.parse_args()
+    args = parse_args(ap, QUICK, argv)
+    results, notes = [], []
     cv2.setNumThreads(args.threads)
     print(f"frames/s at {args.width} px wide, {args.frames} frames, {os.cpu_count()} cores")
     print(
@@ -157,6 +166,7 @@ def main() -> None:
     for name, path in VIDEOS.items():
         if not path.is_file():
             print(f"{name:32s} (missing: {path})")
+            notes.append(f"{name}: not measured (missing: {path})")
             continue
         frames = frames_at(path, args.frames, args.width)
         with MediaPipePose() as detector:
@@ -172,9 +182,21 @@ def main() -> None:
             f"{name:32s} {with_mask:15.1f} {without:10.1f} {subtraction:8.1f} "
             f"{run.frames_per_second:11.1f}"
         )
+        case = f"{name}, {len(frames)} frames at {args.width} px wide"
+        anchor = "OpenCV MOG2 background subtraction"
+        results += [
+            dict(case=case, ours="MediaPipe Pose with its person mask", value=with_mask,
+                 anchor=anchor, anchor_value=subtraction, units="frames/s", better="higher"),
+            dict(case=case, ours="MediaPipe Pose without the mask", value=without,
+                 anchor=anchor, anchor_value=subtraction, units="frames/s", better="higher"),
+            dict(case=case, ours="detect_videos end to end (decode, resize, write)",
+                 value=run.frames_per_second, anchor=None, anchor_value=None,
+                 units="frames/s", better="higher"),
+        ]  # fmt: skip
     print("target: mediapipe+mask >= 15 frames/s (issue 36)")
     if args.accuracy:
         accuracy(args.frames, args.width)
+    return write_rows(args.json, results, notes)
 
 
 if __name__ == "__main__":

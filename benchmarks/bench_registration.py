@@ -20,7 +20,12 @@ and by 2 static cameras, prints
     solve comparable problems.
 
 Usage: python benchmarks/bench_registration.py [--frames N] [--size W H] [--band W]
-       [--particles K] [--iterations N] [--restarts N] [--rounds N] [--repeats N]
+       [--particles K] [--iterations N] [--restarts N] [--rounds N] [--repeats N] [--quick]
+       [--json PATH]
+
+``--quick``: 12 frames, 20 particles, 2 iterations, 1 stage-3 round, a band of 8.
+``--json PATH``: also write the figures as rows for ``benchmarks/report.py``
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -31,9 +36,9 @@ import time
 
 import numpy as np
 import torch
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
-from experiments.runtime import retain_freed_memory
-from experiments.stick_time import BUNDLED
+from motion.bundled import WALK_02_01 as BUNDLED
 from motion.registration import Reference
 from motion.registration.approximate import (
     Stage1Settings,
@@ -42,7 +47,11 @@ from motion.registration.approximate import (
 )
 from motion.registration.inputs import features_from_sequence
 from motion.registration.refine import RefineSettings, refine
+from motion.runtime import retain_freed_memory
 from motion.synth import SynthConfig, synthesize
+
+#: ``--quick``: a shorter video, fewer particles
+QUICK = {"frames": 12, "particles": 20, "iterations": 2, "rounds": 1, "band": 8}
 
 
 def student(cameras: int, frames: int, size: list[int], focal: float):
@@ -149,8 +158,10 @@ def pair_throughput(seq, reference, video, truth: torch.Tensor, band: int, repea
     return pairs, {name: pairs / best[name] for name in fns}, errors
 
 
-def main() -> None:
-    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its tables; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
+    retain_freed_memory()  # process-wide allocator setting (motion/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=50, help="video frames (25 fps)")
     parser.add_argument("--size", type=int, nargs=2, default=[160, 120], metavar=("W", "H"))
@@ -167,7 +178,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="stage 3 rounds (0: no stage 3)")
     parser.add_argument("--repeats", type=int, default=1, help="timed rounds (best is kept)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
     if args.threads:
         torch.set_num_threads(args.threads)
 
@@ -217,6 +228,26 @@ def main() -> None:
         f"ours / OpenCV = {rate['ours'] / rate['opencv']:.2f}x (full cost), "
         f"{rate['ours_joints'] / rate['opencv']:.2f}x (joints only)"
     )
+    results = []
+    for cameras, n, s1, s23 in rows:
+        case = f"{n} frames at {w} x {h}, {cameras} camera(s): seconds per video frame"
+        for stage, value in (("stage 1", s1), ("stages 2-3", s23), ("total", s1 + s23)):
+            results.append(
+                dict(case=case, ours=stage, value=value, anchor=None, anchor_value=None,
+                     units="s / video frame", better="lower")
+            )  # fmt: skip
+    case = f"stage 1 pair fits, one camera, {pairs} pairs"
+    for key in ("ours", "ours_joints"):
+        for what, figures, units, better in (
+            ("throughput", rate, "pairs/s", "higher"),
+            ("median joint reprojection", err, "px", "lower"),
+        ):
+            results.append(
+                dict(case=f"{case}: {what}", ours=labels[key], value=figures[key],
+                     anchor=labels["opencv"], anchor_value=figures["opencv"], units=units,
+                     better=better)
+            )  # fmt: skip
+    return write_rows(args.json, results)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,11 @@ Prints the time to render, for each of the 15 body parts, 1,000 hypotheses of th
 composited against the rest of the body drawn once (`render_part_hypotheses`), beside
 re-rendering the whole body for every hypothesis (`label_map` on 15 parts), same run.
 
-Usage: python benchmarks/bench_render.py [--hypotheses 1000] [--full-sample 100]
+Usage: python benchmarks/bench_render.py [--hypotheses 1000] [--full-sample 100] [--quick]
+       [--json PATH]
+
+``--quick``: 10 hypotheses per part rendered the slow way (instead of 100). ``--json PATH``:
+also write the figures as rows for ``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -13,18 +17,22 @@ import argparse
 import time
 
 import torch
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
-from experiments.demo import BUNDLED_BVH
-from experiments.runtime import retain_freed_memory
 from motion.bodyparts import BodyModel
+from motion.bundled import WALK_02_01
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.render import ProjectedParts, label_map, project_parts, render_part_hypotheses
+from motion.runtime import retain_freed_memory
+
+#: ``--quick``: fewer hypotheses
+QUICK = {"full_sample": 10}
 
 
 def body_segments():
-    bvh = read_bvh(BUNDLED_BVH)
+    bvh = read_bvh(WALK_02_01)
     skel = Skeleton.from_bvh(bvh)
     fk = forward_kinematics(
         skel, *local_rotations(skel, torch.from_numpy(bvh.motion[40]), bvh.channels)
@@ -35,14 +43,16 @@ def body_segments():
     return seg, model.radii.float()
 
 
-def main() -> None:
-    retain_freed_memory()  # process-wide allocator setting (experiments/runtime.py)
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its table; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
+    retain_freed_memory()  # process-wide allocator setting (motion/runtime.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hypotheses", type=int, default=1000)
     parser.add_argument(
         "--full-sample", type=int, default=100, help="hypotheses rendered the slow way"
     )
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
     size = 128
     seg, radii = body_segments()
     height = float(seg[..., 1].max() - seg[..., 1].min())
@@ -96,6 +106,18 @@ def main() -> None:
         f"| whole body per hypothesis (measured on {m}, scaled) | {naive:.2f} | {naive / (p * n) * 1e6:.0f} us |"
     )
     print(f"speed-up {naive / ours:.1f}x")
+    results = [
+        dict(
+            case=f"15 parts x {n} hypotheses at {size} x {size}",
+            ours=f"crop ({min(crops)}-{max(crops)} px) + composite against the rest drawn once",
+            value=ours / (p * n) * 1e6,
+            anchor=f"whole body per hypothesis (measured on {m}, scaled)",
+            anchor_value=naive / (p * n) * 1e6,
+            units="us per part-hypothesis",
+            better="lower",
+        )
+    ]
+    return write_rows(args.json, results)
 
 
 if __name__ == "__main__":

@@ -7,18 +7,23 @@ into a fresh folder, so a wall time includes starting Python (and, on Ray, start
 local Ray and its workers, and stopping it). Rounds alternate the order of the two; each line
 shows the machine's load average before and after (other work on the machine shows there --
 and Ray runs its workers at nice 15, so they yield to it). At the end the records of the two backends are compared: every file of every record and the combined
-``metrics.json`` and ``table.md`` (``config.yaml`` differs only by its ``out_dir``).
+``metrics.json`` and ``table.md`` (``config.yaml`` differs only by its ``out_dir``,
+``provenance.json`` only by when and on how many threads it ran: its commit is compared).
 
 The local Ray has as many CPUs as the machine has cores; each task asks for 1 (and runs torch
 on 1 thread); the sequential run uses torch's default threads (one per core).
 
-Usage: python benchmarks/bench_sweep_backends.py [--rounds 1] [--seeds 4]
+Usage: python benchmarks/bench_sweep_backends.py [--rounds 1] [--seeds 4] [--quick] [--json PATH]
        (needs Ray: pip install .[distributed])
+
+``--quick``: one seed (2 entries). ``--json PATH``: also write the figures as rows for
+``benchmarks/report.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -26,8 +31,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from report import parse_args, write_rows  # benchmarks/report.py, beside this script
+
 ROOT = Path(__file__).resolve().parents[1]
 STICK_TIME = ROOT / "experiments" / "configs" / "stick_time.yaml"
+#: ``--quick``: fewer entries
+QUICK = {"seeds": 1}
 
 
 def _config(folder: Path, seeds: int) -> Path:
@@ -63,16 +72,20 @@ def _differences(a: Path, b: Path) -> list[str]:
                 b"\n".join(line for line in t.splitlines() if not line.startswith(b"out_dir:"))
                 for t in (x, y)
             )
+        if name.endswith("provenance.json"):  # when and on how many threads differ by design
+            x, y = (json.loads(t)["commit"] for t in (x, y))
         if x != y:
             diff.append(name)
     return diff
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Runs the benchmark and prints its lines; returns its figures as rows (see
+    ``benchmarks/report.py``), also written to ``--json`` when given."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=1, help="alternating rounds of both")
     parser.add_argument("--seeds", type=int, default=4, help="seeds (entries = 2 x seeds)")
-    args = parser.parse_args()
+    args = parse_args(parser, QUICK, argv)
     import ray  # noqa: F401  (fail here, not after the sequential round, without Ray)
     import torch
 
@@ -106,7 +119,23 @@ def main() -> None:
     if diff:
         print(f"records differ between the backends: {', '.join(diff)}")
     else:
-        print("records identical (every file; config.yaml but for out_dir)")
+        print(
+            "records identical (every file; config.yaml but for out_dir, provenance.json's commit)"
+        )
+    results = [
+        dict(
+            case=f"stick_time sweep of {2 * args.seeds} entries, best of {args.rounds}",
+            ours=f"local Ray, {os.cpu_count()} CPUs, 1 per task",
+            value=best_ray,
+            anchor="sequential, one process",
+            anchor_value=best_seq,
+            units="s wall",
+            better="lower",
+        )
+    ]
+    notes = [f"records differ between the backends: {', '.join(diff)}" if diff else
+             "records of the two backends identical (but for out_dir and when they ran)"]  # fmt: skip
+    return write_rows(args.json, results, notes)
 
 
 if __name__ == "__main__":

@@ -37,9 +37,9 @@ from pathlib import Path
 from experiments.backends import BACKENDS, make_backend
 from experiments.config import ExperimentSkipped, parse_overrides
 from experiments.demo import BUNDLED_BVH, run_demo
-from experiments.runtime import retain_freed_memory
 from experiments.summarise import SEED_KEYS, SummariseError, load_runs, results_markdown
 from motion.cli import Parser, UsageError, add_debug, one_line, run
+from motion.runtime import retain_freed_memory
 from motion.settings import describe
 
 __all__ = ["EXIT_RUNS_FAILED", "experiments_help", "main"]
@@ -259,7 +259,7 @@ def _command(args: argparse.Namespace) -> int:
         return 0
     if args.command == "summarise":
         return _summarise(args)
-    retain_freed_memory()  # a process-wide allocator setting: see experiments/runtime.py
+    retain_freed_memory()  # a process-wide allocator setting: see motion/runtime.py
     return _run(args) if args.command == "run" else _demo(args)
 
 

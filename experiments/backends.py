@@ -168,7 +168,7 @@ def _ray_task(work: Callable[[W], R], item: W, num_cpus: int, workdir: str) -> _
     when this machine has it (configs name files relative to it); then :func:`attempt`."""
     import torch
 
-    from experiments.runtime import retain_freed_memory
+    from motion.runtime import retain_freed_memory
 
     torch.set_num_threads(max(1, num_cpus))
     retain_freed_memory()  # what the command line does in its own process

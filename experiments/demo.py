@@ -20,9 +20,11 @@ import numpy as np
 import torch
 
 from motion.alignment import chain_align, dtw, robust_cost, slope_step_cost, soft_align
+from motion.bundled import WALK_02_01
 from motion.bvh import read_bvh
 
-BUNDLED_BVH = Path(__file__).resolve().parents[1] / "motion" / "data" / "cmu_02_01_walk.bvh"
+#: the demo's reference (:data:`motion.bundled.WALK_02_01`)
+BUNDLED_BVH = WALK_02_01
 
 
 def angle_features(bvh_path: Path) -> tuple[torch.Tensor, float]:

@@ -59,8 +59,7 @@ from torch import Tensor
 
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note, progress
-from experiments.register_synthetic import _truth
-from experiments.runtime import release_freed_memory
+from experiments.register_synthetic import synthetic_truth
 from experiments.stick_time import BUNDLED
 from motion.bvh import BVH, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_about_y
@@ -70,6 +69,7 @@ from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
 from motion.registration.inputs import features_from_sequence
 from motion.registration.refine import RefineSettings
+from motion.runtime import release_freed_memory
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
 
@@ -370,7 +370,7 @@ def _run(cfg: RegisterLongConfig):
             f"expected {num_video} video frames from {num_ref} reference frames; synthesize "
             f"made {seq.meta['num_video_frames']}"
         )
-    truth = _truth(seq, reference, None)
+    truth = synthetic_truth(seq, reference, None)
     # the colour frames stay uint8 (the engine converts them a window at a time): float32
     # images of every frame would be 1.7 GB of the 5-minute video's memory
     video = features_from_sequence(

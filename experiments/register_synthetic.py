@@ -187,7 +187,11 @@ def nearest_truth(c: Tensor, alternatives: Tensor) -> int:
     return int((alternatives - c).abs().double().mean(-1).argmin())
 
 
-def _truth(seq, reference: Reference, student: Reference | None) -> Truth:
+def synthetic_truth(seq, reference: Reference, student: Reference | None) -> Truth:
+    """The true C, T and A of the synthetic student ``seq`` (``motion synth``'s arrays):
+    ``student`` is the other performer it was rendered from (``None``: the reference
+    itself, whose true C is the one shown; otherwise every equally true C,
+    :func:`true_correspondences`)."""
     arrays = seq.arrays
     shown = torch.from_numpy(arrays["C_shown"]).long()
     source = student or reference
@@ -269,7 +273,7 @@ def run(cfg: RegisterSyntheticConfig):
             f"student: {cfg.student} has other joints than {cfg.reference}; expected the "
             "same skeleton (the true A compares joints by name)"
         )
-    truth = _truth(seq, reference, student)
+    truth = synthetic_truth(seq, reference, student)
     video = features_from_sequence(seq, keypoints=cfg.keypoints)
     if cfg.frames:
         video, truth = _first(video, truth, cfg.frames)

@@ -4,7 +4,7 @@ Each run writes into its ``out_dir``: ``metrics.json`` (flat: metric name -> num
 accuracy figures only, so the same config and seed give a byte-identical file),
 ``timings.json`` (the experiment's timing figures, e.g. ``poses_per_s``, which vary from run
 to run; only for experiments that measure any), ``config.yaml`` (the resolved config),
-``provenance.json`` (commit, date, machine, threads: :func:`experiments.summarise.provenance`),
+``provenance.json`` (commit, date, machine, threads: :func:`motion.provenance.provenance`),
 ``per_frame.csv`` where the experiment has per-frame values, ``plot.png`` and ``table.md``. A
 config with a ``sweep`` runs once per entry (into ``out_dir/<label>``) and also writes the
 combined ``table.md``, ``metrics.json`` and ``timings.json`` (keys suffixed ``@label``) in
@@ -56,7 +56,7 @@ from experiments.config import (
     sweep_label,
 )
 from experiments.progress import Tally, note
-from experiments.summarise import provenance
+from motion.provenance import provenance
 
 __all__ = [
     "CONFIGS",

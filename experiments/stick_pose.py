@@ -22,7 +22,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import progress
-from experiments.stick_time import BUNDLED, _reference_landmarks
+from experiments.stick_time import BUNDLED, reference_landmarks
 from motion.kinematics import matrix_to_euler
 from motion.metrics import position_error, registration_error, rotation_error_deg
 from motion.pose import solve_pose
@@ -91,7 +91,7 @@ def _project(pc: torch.Tensor, k: torch.Tensor, orthographic: bool) -> torch.Ten
 
 
 def _problems(cfg: StickPoseConfig, g: torch.Generator):
-    ref, _ = _reference_landmarks(cfg.bvh)
+    ref, _ = reference_landmarks(cfg.bvh)
     if cfg.frames > len(ref):
         raise ConfigError(
             f"frames={cfg.frames}: {cfg.bvh} has {len(ref)} frames; expected at most {len(ref)}"

@@ -80,7 +80,9 @@ class StickTimeConfig(ExperimentConfig):
     )
 
 
-def _reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
+def reference_landmarks(path: str) -> tuple[torch.Tensor, float]:
+    """The body landmarks of every frame of the BVH file ``path`` ``(T, R, 3)``, metres,
+    centred on the mean root landmark, and its frame rate (Hz)."""
     bvh = read_bvh(path)
     skel = Skeleton.from_bvh(bvh)
     motion = bvh.motion_frames()  # without a converter's reference pose
@@ -122,7 +124,7 @@ def _check_in_front(points: torch.Tensor, distance: float) -> None:
 def run(cfg: StickTimeConfig) -> tuple[dict, dict, dict]:
     """Returns (metrics, per-frame columns, plot data)."""
     g = torch.Generator().manual_seed(cfg.seed)
-    ref, ref_rate = _reference_landmarks(cfg.bvh)
+    ref, ref_rate = reference_landmarks(cfg.bvh)
     if cfg.tiny:
         ref = ref[: min(len(ref), 120)]
     num_ref = ref.shape[0]

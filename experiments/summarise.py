@@ -2,7 +2,8 @@
 
 A run's record (:mod:`experiments.runner`) is a folder with ``metrics.json``, maybe
 ``timings.json``, ``config.yaml`` (the resolved config) and ``provenance.json`` (where and
-from what it ran: :func:`provenance`). A sweep's ``out_dir`` holds one such folder per entry.
+from what it ran: :func:`motion.provenance.provenance`, re-exported here). A sweep's
+``out_dir`` holds one such folder per entry.
 This module reads them back and writes one Markdown page: a provenance header (commits,
 dates, machines, threads), then a table with a row per group of runs that differ only in
 their seeds (by default ``seed`` and ``warp_seed``), each metric as mean +- standard
@@ -13,18 +14,15 @@ the sweep, rerun this, and the numbers and their provenance change together.
 
 from __future__ import annotations
 
-import datetime
 import json
 import math
-import os
-import platform
-import subprocess
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
 import yaml
+
+from motion.provenance import provenance
 
 __all__ = [
     "RunResult",
@@ -43,37 +41,6 @@ IGNORED_KEYS = ("out_dir", "tiny", "experiment")
 
 class SummariseError(ValueError):
     """Records that cannot be read or summarised (the message names the folder)."""
-
-
-def provenance(repo: Path | None = None) -> dict:
-    """Where and from what a run ran: ``commit`` (``git rev-parse HEAD`` of ``repo``,
-    default this package's checkout; ``"unknown"`` outside git), ``dirty`` (uncommitted
-    changes to tracked files), ``date`` (UTC, ISO 8601), ``machine`` (host name, CPU
-    architecture), ``cpus`` (``os.cpu_count()``), ``threads`` (torch's intra-op threads),
-    ``python`` and ``torch`` versions."""
-    repo = repo or Path(__file__).resolve().parent.parent
-
-    def git(*args: str) -> str | None:
-        try:
-            out = subprocess.run(
-                ["git", *args], cwd=repo, capture_output=True, text=True, timeout=10, check=True
-            )
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return out.stdout.strip()
-
-    commit = git("rev-parse", "HEAD")
-    status = git("status", "--porcelain", "--untracked-files=no")
-    return {
-        "commit": commit or "unknown",
-        "dirty": bool(status) if status is not None else None,
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "machine": f"{platform.node()} ({platform.machine()})",
-        "cpus": os.cpu_count(),
-        "threads": torch.get_num_threads(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ def test_retain_freed_memory_takes_effect_on_glibc_and_keeps_results_identical()
     is the C library, and computations do not change."""
     code = (
         "import torch\n"
-        "from experiments.runtime import retain_freed_memory\n"
+        "from motion.runtime import retain_freed_memory\n"
         "g = torch.Generator().manual_seed(0)\n"
         "x = torch.randn(3000, 3000, generator=g, dtype=torch.float64)\n"
         "before = (x @ x).sum().item()\n"
