@@ -8,13 +8,16 @@ A settings class is a dataclass deriving from :class:`Settings` whose fields are
         fps: float = setting(25.0, "video frame rate (Hz)", gt=0, le=1000)
 
 The annotation gives the type (``bool``, ``int``, ``float``, ``str``, ``list[...]`` of those,
-``dict[str, float]``, optionally ``... | None``); the metadata gives the range, the allowed
-choices and a one-line meaning. Construction checks every field (``__post_init__``);
-:func:`coerce` checks one value as it arrives (from YAML or from Python), :func:`from_text`
-parses the text of a ``key=value`` command-line setting, :func:`describe` lists the fields
-(plain text, for ``--help``) and :func:`unknown_key` words the error for a key that is not a
-field. Every failure is a :class:`SettingError` (a ``ValueError``, or the class's
-``setting_error`` subclass) of one line: ``WHERE: KEY must be EXPECTED; got GIVEN``.
+``tuple[float, ...]`` or ``tuple[float, float, float]`` (kept a tuple, of that length),
+``dict[str, float]``, or any other class whose values are listed as ``choices``; optionally
+``... | None``); the metadata gives the range, the allowed choices and a one-line meaning.
+Construction checks every field (``__post_init__``); :func:`coerce` checks one value as it
+arrives (from YAML or from Python), :func:`from_text` parses the text of a ``key=value``
+command-line setting, :func:`describe` lists the fields (plain text, for ``--help``) and
+:func:`unknown_key` words the error for a key that is not a field. Every failure is a
+:class:`SettingError` (a ``ValueError``, or the class's ``setting_error`` subclass) of one
+line: ``WHERE: KEY must be EXPECTED; got GIVEN``; a settings file or command line that does
+not fit is a :class:`ConfigError` (one class for ``motion register`` and ``experiments``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 __all__ = [
+    "ConfigError",
     "SettingError",
     "Settings",
     "coerce",
@@ -54,6 +58,13 @@ class SettingError(ValueError):
     expected and what was given)."""
 
 
+class ConfigError(SettingError):
+    """A settings file, ``key=value`` override or sweep entry that does not fit its settings
+    (or is not valid YAML): one line naming where (file and line, or ``command line``), the
+    key, what was expected and what was given. The one error class of ``motion register``'s
+    settings (:mod:`motion.registration.config`) and of ``experiments`` (its configs)."""
+
+
 @dataclass(frozen=True)
 class Spec:
     """What one field accepts (the metadata :func:`setting` attaches to a field).
@@ -61,7 +72,8 @@ class Spec:
     Attributes:
         doc: one-line meaning, plain text (shown by ``--help``).
         ge, gt, le, lt: bounds of a number (or of every number of a list or mapping).
-        choices: allowed values of a string (or of every string of a list).
+        choices: allowed values of a string (or of every string of a list), or of a field of
+            another class (``torch.dtype``: ``(torch.float32, torch.float64)``).
         length: exact length of a list; min_length: its least length.
         sep: characters separating a list's items in command-line text (``"x,"``: either).
         example: the command-line text form, shown in errors and help (e.g. ``"320x240"``).
@@ -74,7 +86,7 @@ class Spec:
     gt: float | None = None
     le: float | None = None
     lt: float | None = None
-    choices: tuple[str, ...] | None = None
+    choices: tuple[Any, ...] | None = None
     length: int | None = None
     min_length: int | None = None
     sep: str = ","
@@ -99,12 +111,18 @@ def setting(
 
 @dataclass(frozen=True)
 class _Type:
-    """A field's type: ``base`` is bool, int, float, str, list or dict; ``item`` the type of a
-    list's items or a mapping's values."""
+    """A field's type: ``base`` is bool, int, float, str, list, tuple, dict or another class
+    (whose values the field's ``choices`` list); ``item`` the type of a list's or tuple's
+    items or a mapping's values; ``length`` a fixed-length tuple's length."""
 
     base: type
     item: _Type | None = None
     optional: bool = False
+    length: int | None = None
+
+
+#: the types :func:`_coerce` reads itself (any other class needs ``choices``)
+_KNOWN = (bool, int, float, str, list, tuple, dict)
 
 
 def _parse_type(annotation: Any) -> _Type:
@@ -118,8 +136,16 @@ def _parse_type(annotation: Any) -> _Type:
         return _Type(annotation)
     if origin is list or annotation is list:
         return _Type(list, _parse_type(args[0]) if args else _Type(str))
+    if origin is tuple or annotation is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return _Type(tuple, _parse_type(args[0]))
+        if not args or len(set(args)) != 1:
+            raise TypeError(f"unsupported setting type {annotation!r} (one item type only)")
+        return _Type(tuple, _parse_type(args[0]), length=len(args))
     if origin is dict:
         return _Type(dict, _parse_type(args[1]))
+    if isinstance(annotation, type) and origin is None and annotation not in _KNOWN:
+        return _Type(annotation)  # values listed by the field's choices (checked by _fields)
     raise TypeError(f"unsupported setting type {annotation!r}")
 
 
@@ -127,10 +153,14 @@ def _parse_type(annotation: Any) -> _Type:
 def _fields(cls: type) -> dict[str, tuple[_Type, Spec]]:
     """Field name -> (type, spec) of a settings dataclass (cached per class)."""
     hints = typing.get_type_hints(cls)
-    return {
+    out = {
         f.name: (_parse_type(hints[f.name]), f.metadata.get("setting", Spec()))
         for f in dataclasses.fields(cls)
     }
+    for name, (t, spec) in out.items():
+        if t.base not in _KNOWN and not spec.choices:
+            raise TypeError(f"{cls.__name__}.{name}: a {t.base.__name__} setting needs choices")
+    return out
 
 
 def _num(x: float) -> str:
@@ -191,6 +221,8 @@ def _scalar(t: _Type, spec: Spec, plural: bool = False) -> str:
     """What a scalar of type ``t`` must be, with its range (``"a number > 0"``)."""
     if t.base is bool:
         return "true or false"
+    if t.base not in _KNOWN:
+        return "one of " + ", ".join(show(c) for c in spec.choices)
     if t.base is str:
         if spec.choices:
             return "one of " + ", ".join(repr(c) for c in spec.choices)
@@ -205,10 +237,11 @@ def _scalar(t: _Type, spec: Spec, plural: bool = False) -> str:
 
 def expected(t: _Type, spec: Spec) -> str:
     """What a value of type ``t`` under ``spec`` must be, in words."""
-    if t.base is list:
+    if t.base in (list, tuple):
+        length = t.length if t.length is not None else spec.length
         lead = "a list of"
-        if spec.length is not None:
-            lead = f"a list of {spec.length}"
+        if length is not None:
+            lead = f"a list of {length}"
         elif spec.min_length == 1:
             lead = "a non-empty list of"
         elif spec.min_length:
@@ -259,6 +292,10 @@ def _coerce(value: Any, t: _Type, spec: Spec, key: str, paths: bool) -> Any:
         if not isinstance(value, bool):
             raise _must(key, "true or false", value)
         return value
+    if base not in _KNOWN:
+        if not (isinstance(value, base) and value in spec.choices):
+            raise _must(key, _scalar(t, spec), value)
+        return value
     if base in (int, float):
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise _must(key, _scalar(t, spec), value)
@@ -283,16 +320,15 @@ def _coerce(value: Any, t: _Type, spec: Spec, key: str, paths: bool) -> Any:
         if paths and spec.path:
             _check_path(key, value, spec.path)
         return value
-    if base is list:
-        if isinstance(value, tuple):
-            value = list(value)
-        if not isinstance(value, list):
+    if base in (list, tuple):
+        if not isinstance(value, (list, tuple)):
             raise _must(key, expected(t, spec), value)
-        if (spec.length is not None and len(value) != spec.length) or (
+        length = t.length if t.length is not None else spec.length
+        if (length is not None and len(value) != length) or (
             spec.min_length is not None and len(value) < spec.min_length
         ):
             raise _must(key, expected(t, spec), value)
-        return [_coerce(v, t.item, spec, f"{key}[{i}]", paths) for i, v in enumerate(value)]
+        return base(_coerce(v, t.item, spec, f"{key}[{i}]", paths) for i, v in enumerate(value))
     if not isinstance(value, Mapping):  # dict
         raise _must(key, expected(t, spec), value)
     out = {}
@@ -378,9 +414,12 @@ def _text_item(text: str, t: _Type) -> Any:
 
 def _text_value(text: str, t: _Type, spec: Spec, key: str) -> Any:
     s = text.strip()
-    if t.base not in (list, dict) or s == "" or (t.optional and s.lower() in ("none", "null")):
+    empty = s == "" or (t.optional and s.lower() in ("none", "null"))
+    if t.base not in _KNOWN and not empty:  # one of the choices, as printed (torch.float64)
+        return next((c for c in spec.choices if str(c) == s), s)
+    if t.base not in (list, tuple, dict) or empty:
         return _text_item(text, t)
-    if t.base is list:
+    if t.base in (list, tuple):
         return [_text_item(p, t.item) for p in re.split(f"[{re.escape(spec.sep)}]", s)]
     out: dict[str, Any] = {}
     for pair in filter(None, (p.strip() for p in s.split(","))):
@@ -416,7 +455,7 @@ def _text_form(value: Any, t: _Type, spec: Spec) -> str:
         return "none"
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, list):
+    if isinstance(value, (list, tuple)):
         return spec.sep[0].join(_text_form(v, t.item, spec) for v in value) or "empty"
     if isinstance(value, dict):
         return ",".join(f"{k}:{_num(v)}" for k, v in value.items()) or "empty"

@@ -7,8 +7,14 @@ Every tuning constant already lives in a frozen settings dataclass of its stage
 fields by name. A key is a dotted path through those dataclasses -- ``seed``, ``scale``,
 ``video.width``, ``stage1.yaw_starts``, ``refine.particles``, ``refine.temporal.pos_std`` --
 in a YAML mapping (nested or dotted) or as ``key=value`` on the command line (the value is
-read as YAML: ``true``, ``3``, ``0.5``, ``none``, ``[1, 2]``). A key that is not a field, or
-a value of another type than the field's, is a :class:`ConfigError` naming it.
+read as YAML: ``true``, ``3``, ``0.5``, ``none``, ``[1, 2]``). Files and values are read by the
+strict YAML reader of :mod:`motion.settings_yaml` (YAML 1.2 scalars, duplicate keys refused).
+A key that is not a field, or a value of another type or range than the field's, is a
+:class:`ConfigError` (:class:`motion.settings.ConfigError`) of one line naming where (the file
+and line, or ``command line``), the key, what was expected and what was given. The groups
+that are :class:`motion.settings.Settings` (video, perception, stage1, movement, findings)
+check each value against the field's declared type and range; the others (refine, the
+pipeline's scale and seed) against the field's annotation, then their own checks.
 
 :func:`config_template` writes every setting as such a YAML file, each with its value and its
 meaning as a comment (``motion register --write-config PATH``); read back by
@@ -36,6 +42,8 @@ from motion.registration.export import FindingSettings
 from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
 from motion.registration.video import VideoSettings
+from motion.settings import ConfigError, SettingError, Settings, coerce
+from motion.settings_yaml import line_of, load_yaml, read_yaml
 
 __all__ = [
     "ConfigError",
@@ -46,10 +54,6 @@ __all__ = [
     "settings_dict",
     "user_key",
 ]
-
-
-class ConfigError(ValueError):
-    """A settings file or override that does not fit the settings (names key and value)."""
 
 
 @dataclass(frozen=True)
@@ -76,13 +80,19 @@ class RegisterConfig:
 def _flatten(values: Mapping, prefix: str = "") -> dict[str, object]:
     """Nested mappings -> dotted keys (``{"refine": {"particles": 50}}`` ->
     ``{"refine.particles": 50}``)."""
-    out: dict[str, object] = {}
+    return {key: value for key, (value, _) in _flatten_at(values, "", prefix).items()}
+
+
+def _flatten_at(values: Mapping, path: str, prefix: str = "") -> dict[str, tuple[object, str]]:
+    """:func:`_flatten`, each value with where it was given (``PATH:LINE`` where the
+    mapping was read from the file ``path`` by :func:`motion.settings_yaml.read_yaml`)."""
+    out: dict[str, tuple[object, str]] = {}
     for key, value in values.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            out.update(_flatten(value, f"{name}."))
+            out.update(_flatten_at(value, path, f"{name}."))
         else:
-            out[name] = value
+            out[name] = (value, line_of(values, key, path))
     return out
 
 
@@ -269,11 +279,7 @@ def _apply(obj, items: list[_Item]):
                 f"{item.where}: {name} is a group of settings, not one value (got "
                 f"{item.value!r}); set one of {names}"
             )
-        if not _accepts(hints[head], current, item.value):
-            raise ConfigError(
-                f"{item.where}: {name} must be {_type_name(hints[head])}; got {item.value!r}"
-            )
-        leaves[head] = _convert(hints[head], item.value)
+        leaves[head] = _leaf(obj, head, hints[head], item)
         nested.pop(head, None)  # a whole group given later replaces earlier sub-settings
         wheres.append(item.where)
         given.append(item.key)
@@ -292,9 +298,24 @@ def _apply(obj, items: list[_Item]):
         raise ConfigError(f"{where}: {' '.join(str(err).split())} (given: {keys})") from None
 
 
+def _leaf(obj, head: str, hint, item: _Item):
+    """``item``'s value for the field ``head`` of ``obj``: checked against the field's
+    declared type and range (:func:`motion.settings.coerce`) in a settings class, against
+    its annotation (:func:`_accepts`) in a plain dataclass."""
+    if isinstance(obj, Settings):
+        try:
+            return coerce(type(obj), head, item.value, paths=True)
+        except SettingError as err:  # "KEY must be ...": the key as the user wrote it
+            raise ConfigError(f"{item.where}: {_walked(item)}{err}") from None
+    if not _accepts(hint, getattr(obj, head), item.value):
+        name = _walked(item) + head
+        raise ConfigError(f"{item.where}: {name} must be {_type_name(hint)}; got {item.value!r}")
+    return _convert(hint, item.value)
+
+
 def override(obj, key: str, value, where: str = "settings"):
     """A copy of the settings dataclass ``obj`` with the field at dotted ``key`` set to
-    ``value`` (checked against the field's annotation)."""
+    ``value`` (checked as :func:`load_config` checks it)."""
     return _apply(obj, [_Item(key, key, value, where)])
 
 
@@ -315,8 +336,8 @@ def _parse_assignment(item: str) -> tuple[str, object]:
             f"expected a setting as key=value (e.g. refine.particles=50); got {item!r}"
         )
     try:
-        value = yaml.safe_load(text) if text.strip() else None
-    except yaml.YAMLError:
+        value = load_yaml(text, "command line", inline=True) if text.strip() else None
+    except ConfigError:  # not YAML: the text itself (the field's check says if it fits)
         value = text
     if isinstance(value, str) and value.lower() in ("none", "null"):
         value = None
@@ -332,17 +353,14 @@ def load_config(
     values: list[tuple[str, object, str]] = []
     if path is not None:
         path = Path(path)
-        try:
-            loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
+        loaded = read_yaml(path)  # strict: duplicate keys refused, problems at their line
         if loaded is None:
             loaded = {}
         if not isinstance(loaded, Mapping):
             raise ConfigError(
                 f"{path}: expected a mapping of settings; got {type(loaded).__name__}"
             )
-        values += [(k, v, str(path)) for k, v in _flatten(loaded).items()]
+        values += [(k, v, where) for k, (v, where) in _flatten_at(loaded, str(path)).items()]
     for item in overrides or []:
         key, value = _parse_assignment(item)
         values.append((key, value, "command line"))
@@ -366,8 +384,8 @@ TEMPLATE_HEADER = """\
 # left out keeps its default, so you may keep only what you change. The same keys, dotted,
 # may follow the command line's options as key=value (refine.particles=60): those win over
 # the file. Values are YAML (null: none). A line "# key: VALUE (not settable in a file)" is
-# a setting only Python code can change. Each group names the class whose docstring
-# explains its settings in full."""
+# a setting only Python code can change. Each group names the class that documents its
+# settings."""
 
 _NAMES = r"[a-z_][a-z0-9_]*(?:,\s*[a-z_][a-z0-9_]*)*"
 _ENTRY = re.compile(rf"^(\s*)({_NAMES}):(?:\s+(.*))?$")
@@ -509,9 +527,15 @@ def _mentioned(name: str, entries: list[_Doc], prose: str) -> str:
 
 
 def _field_docs(cls: type) -> dict[str, _Doc]:
-    """Field name -> its meaning: a settings field's own (:func:`motion.settings.setting`),
-    else the first sentence of its docstring entry, else the sentence of another field's
-    entry (or of the docstring's text) that names it, else nothing."""
+    """Field name -> its meaning. A settings class's fields carry their own
+    (:func:`motion.settings.setting`); a plain dataclass's come from its docstring: the first
+    sentence of the field's entry, else the sentence of another field's entry (or of the
+    docstring's text) that names it, else nothing."""
+    if issubclass(cls, Settings):
+        return {
+            f.name: _Doc((f.name,), getattr(f.metadata.get("setting"), "doc", ""))
+            for f in dataclasses.fields(cls)
+        }
     entries, prose = _docstring(cls)
     own: dict[str, _Doc] = {}
     for entry in entries:
@@ -519,10 +543,7 @@ def _field_docs(cls: type) -> dict[str, _Doc]:
             own.setdefault(name, entry)
     docs = {}
     for f in dataclasses.fields(cls):
-        spec = f.metadata.get("setting")
-        if spec is not None and spec.doc:
-            docs[f.name] = _Doc((f.name,), spec.doc)
-        elif f.name in own:
+        if f.name in own:
             entry = own[f.name]
             names = f"{', '.join(entry.names)}: " if len(entry.names) > 1 else ""
             docs[f.name] = _Doc(entry.names, names + _brief(entry.text))
@@ -548,7 +569,23 @@ def _yaml_value(value) -> str | None:
         data = plain(value)
     except TypeError:
         return None
-    text = yaml.safe_dump(data, default_flow_style=True, width=10**9, sort_keys=False)
+    text = _dump(data, yaml.SafeDumper)
+    if load_yaml(text, "the template") != data:  # a string YAML 1.2 reads otherwise ("1e3")
+        text = _dump(data, _QuotedDumper)
+    return text
+
+
+class _QuotedDumper(yaml.SafeDumper):
+    """Writes every string double-quoted (read back as a string by any YAML)."""
+
+
+_QuotedDumper.add_representer(
+    str, lambda dumper, s: dumper.represent_scalar("tag:yaml.org,2002:str", s, style='"')
+)
+
+
+def _dump(data, dumper: type[yaml.SafeDumper]) -> str:
+    text = yaml.dump(data, Dumper=dumper, default_flow_style=True, width=10**9, sort_keys=False)
     return text.removesuffix("...\n").strip()
 
 

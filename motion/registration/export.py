@@ -49,6 +49,7 @@ from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
 from motion.registration.movement import MovementCheck
 from motion.registration.types import Reference, Registration, RegistrationError
+from motion.settings import Settings, setting
 
 __all__ = [
     "FindingSettings",
@@ -544,39 +545,34 @@ def _rms(values: np.ndarray | None) -> float:
 
 
 @dataclass(frozen=True)
-class FindingSettings:
+class FindingSettings(Settings):
     """When one of the largest differences is stated as a finding (``findings.*`` of
-    ``motion register``).
+    ``motion register``). Every field is checked at construction (a bad value raises
+    :class:`~motion.settings.SettingError`, a ``ValueError``, naming it)."""
 
-    Attributes:
-        interval_z: a finding's interval is its mean difference ``± interval_z`` times its
-            uncertainty (:attr:`JointDifference.uncertainty_deg`); one whose interval holds
-            0 is not stated (2: about 95 % for a normal error).
-        min_trusted_s: a finding needs at least this many seconds of trusted frames (the
-            running median's width, :data:`SMOOTH_S`, by default: a shorter run is a jitter
-            the median let through).
-        method_error_deg: the method's own error of a joint-angle difference, degrees,
-            added in quadrature to the inference's uncertainty for the interval. The
-            particle spread measures how far the posterior lets a part turn, not how far the
-            method is off: on students of *other* performers (``register_cross.yaml``: 4
-            pairs of CMU subjects, walks and a jog/run, 1 and 2 cameras, 3 seeds) the
-            differences' RMS error was 11-14 degrees against a stated spread of 2.6-3.5, and
-            24-43 % of errors fell within twice the spread; stated findings agreed with the
-            truth in 0-56 % of cases. 12 degrees keeps a finding only where it exceeds that
-            error; 0 trusts the spread alone (what a student of the reference's own
-            performer bears: RMS error 3.6-3.7 against a spread of 2.4-2.8).
-    """
-
-    interval_z: float = 2.0
-    min_trusted_s: float = SMOOTH_S
-    method_error_deg: float = 12.0
-
-    def __post_init__(self):
-        if not (self.interval_z >= 0 and self.min_trusted_s >= 0 and self.method_error_deg >= 0):
-            raise ValueError(
-                f"interval_z, min_trusted_s and method_error_deg must be >= 0; got "
-                f"{self.interval_z}, {self.min_trusted_s}, {self.method_error_deg}"
-            )
+    interval_z: float = setting(
+        2.0,
+        "a finding's interval is its mean difference ± interval_z times its uncertainty "
+        "(JointDifference.uncertainty_deg); one whose interval holds 0 is not stated (2: "
+        "about 95 % for a normal error)",
+        ge=0,
+    )
+    min_trusted_s: float = setting(
+        SMOOTH_S,
+        "a finding needs at least this many seconds of trusted frames (by default the running "
+        "median's width, SMOOTH_S: a shorter run is a jitter the median let through)",
+        ge=0,
+    )
+    method_error_deg: float = setting(
+        12.0,
+        "the method's own error of a joint-angle difference, degrees, added in quadrature to "
+        "the inference's uncertainty for the interval: the particle spread measures how far "
+        "the posterior lets a part turn, not how far the method is off. The default is the "
+        "error measured on students of other performers (experiments register_cross.yaml), "
+        "so a finding is kept only where it exceeds it; 0 trusts the spread alone (fit for a "
+        "student of the reference's own performer)",
+        ge=0,
+    )
 
     def why_not(self, finding: JointDifference, frame_rate: float) -> str:
         """Why ``finding`` is not stated ("" when it is)."""

@@ -39,52 +39,62 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from motion.settings import Settings, setting
+
 __all__ = ["MovementCheck", "MovementSettings", "check_movement"]
 
 
 @dataclass(frozen=True)
-class MovementSettings:
+class MovementSettings(Settings):
     """Thresholds of :func:`check_movement` (see the module's docstring for their grounds).
+    Every field is checked at construction (a bad value raises
+    :class:`~motion.settings.SettingError`, a ``ValueError``, naming it)."""
 
-    Attributes:
-        max_travel_ratio: the student's net displacement over the reference's (over the
-            frames C covers, the reference scaled by G) may lie in ``[1 / r, r]``.
-        travelling_m: travel is compared when the student or the reference moves at least
-            this far (metres, net) over those frames ...
-        min_travel_difference_m: ... and the two displacements differ by more than this
-            (metres).
-        end_window_s: the displacements compare the mean positions over this many seconds
-            at each end (a step's sway averaged out).
-        max_stalled: largest fraction of video frames where C stands still ...
-        stall_min_step: ... counted only where the nominal step (reference frames per video
-            frame at the fitted speed) is at least this.
-        fast_step_factor: a step of C of at least this times ``reference_rate /
-            video_rate`` is racing ...
-        max_fast: ... on at most this fraction of the video's frames.
-    """
-
-    max_travel_ratio: float = 2.0
-    travelling_m: float = 0.5
-    min_travel_difference_m: float = 0.5
-    end_window_s: float = 0.12
-    max_stalled: float = 0.2
-    stall_min_step: float = 2.0
-    fast_step_factor: float = 2.0
-    max_fast: float = 0.25
-
-    def __post_init__(self):
-        for name in ("max_stalled", "max_fast"):
-            value = getattr(self, name)
-            if not 0 < value <= 1:
-                raise ValueError(f"MovementSettings.{name} must be in (0, 1]; got {value}")
-        if not self.fast_step_factor > 1:
-            raise ValueError(
-                f"MovementSettings.fast_step_factor must exceed 1; got {self.fast_step_factor}"
-            )
-        if not self.max_travel_ratio > 1:
-            raise ValueError(
-                f"MovementSettings.max_travel_ratio must exceed 1; got {self.max_travel_ratio}"
-            )
+    max_travel_ratio: float = setting(
+        2.0,
+        "the student's net displacement over the reference's (over the frames C covers, the "
+        "reference scaled by G) may lie in [1 / r, r] for this r",
+        gt=1,
+    )
+    travelling_m: float = setting(
+        0.5,
+        "travel is compared when the student or the reference moves at least this far "
+        "(metres, net) over those frames, and the two displacements differ by more than "
+        "min_travel_difference_m",
+        ge=0,
+    )
+    min_travel_difference_m: float = setting(
+        0.5,
+        "travel is compared only when the two displacements differ by more than this (metres)",
+        ge=0,
+    )
+    end_window_s: float = setting(
+        0.12,
+        "the displacements compare the mean positions over this many seconds at each end (a "
+        "step's sway averaged out)",
+        ge=0,
+    )
+    max_stalled: float = setting(
+        0.2,
+        "largest fraction of video frames where C stands still, counted only where the "
+        "nominal step is at least stall_min_step",
+        gt=0,
+        le=1,
+    )
+    stall_min_step: float = setting(
+        2.0,
+        "stalls are counted only where the nominal step (reference frames per video frame at "
+        "the fitted speed) is at least this",
+        ge=0,
+    )
+    fast_step_factor: float = setting(
+        2.0,
+        "a step of C of at least this times the reference's frame rate over the video's is racing",
+        gt=1,
+    )
+    max_fast: float = setting(
+        0.25, "largest fraction of the video's frames on which C may race", gt=0, le=1
+    )
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import experiments.config as experiments_config
 from experiments.__main__ import main
 from experiments.config import ConfigError, load_config, parse_overrides
 from experiments.runner import EXPERIMENTS, run_config
@@ -453,6 +454,16 @@ def test_valid_oddities_work(tmp_path):
         [],
     )
     assert type(cfg.camera_distance) is float
+
+
+def test_one_config_error_and_one_strict_reader_with_motion_register():
+    """experiments' ConfigError and YAML reader are motion's (motion register's --config)."""
+    import motion.registration.config
+    import motion.settings
+    import motion.settings_yaml
+
+    assert ConfigError is motion.settings.ConfigError is motion.registration.config.ConfigError
+    assert experiments_config.read_yaml is motion.settings_yaml.read_yaml
 
 
 def test_tiny_never_replaces_an_explicit_value():

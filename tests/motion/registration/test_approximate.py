@@ -7,6 +7,7 @@ cores, one torch thread (see the module fixture): the whole file runs in ~30 s.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -504,23 +505,38 @@ def test_bad_inputs_are_refused(reference, short, walk):
 @pytest.mark.parametrize(
     "kwargs, expected",
     [
-        (dict(yaw_starts=0), "yaw_starts must be an int >= 1; got 0"),
-        (dict(iterations=2.5), "iterations must be an int >= 1; got 2.5"),
-        (dict(refine_starts=9), "refine_starts must be <= yaw_starts"),
-        (dict(robust="median"), "robust must be 'truncate' or 'saturate'; got 'median'"),
+        (dict(yaw_starts=0), "yaw_starts must be >= 1; got 0"),
+        (dict(iterations=2.5), "iterations must be an integer >= 1; got 2.5"),
+        (dict(refine_starts=9), "refine_starts must be <= yaw_starts (8); got 9"),
+        (dict(robust="median"), "robust must be one of 'truncate', 'saturate'; got 'median'"),
         (dict(truncate=0.0), "truncate must be > 0; got 0.0"),
-        (dict(edge_weight=math.inf), "edge_weight must be a finite number >= 0; got inf"),
+        (dict(edge_weight=math.inf), "edge_weight must be a finite number; got inf"),
+        (dict(edge_weight=-0.1), "edge_weight must be >= 0; got -0.1"),
         (dict(reference_up=(0.0, 0.0, 0.0)), "reference_up must be a non-zero 3-vector"),
+        (dict(reference_up=(0.0, 1.0)), "reference_up must be a list of 3 numbers; got"),
         (dict(factor=1), "factor must be >= 2; got 1"),
-        (dict(clipped_depths=(1.0, 0.0)), "clipped_depths must be a non-empty tuple of fract"),
-        (dict(clipped_depths=()), "clipped_depths must be a non-empty tuple of fractions"),
-        (dict(clipped_shifts=(0.0, 1.0)), "clipped_shifts must be a non-empty tuple of fract"),
-        (dict(clipped_shifts=[0.0]), "clipped_shifts must be a non-empty tuple of fractions"),
+        (dict(radius=0), "radius must be >= 1; got 0"),
+        (dict(clipped_depths=(1.0, 0.0)), "clipped_depths[1] must be in (0, 1]; got 0.0"),
+        (dict(clipped_depths=()), "clipped_depths must be a non-empty list of numbers in (0, 1]"),
+        (dict(clipped_shifts=(0.0, 1.0)), "clipped_shifts[1] must be in [0, 1); got 1.0"),
+        (dict(clipped_shifts=0.1), "clipped_shifts must be a non-empty list of numbers in [0, 1)"),
         (dict(heading_tolerance_deg=180.0), "heading_tolerance_deg must be in [0, 180); got"),
-        (dict(dtype=torch.float16), "dtype must be torch.float32 or torch.float64"),
+        (dict(fix_start=1), "fix_start must be true or false; got 1"),
+        (dict(dtype=torch.float16), "dtype must be one of torch.float32, torch.float64; got"),
     ],
 )
 def test_bad_settings_are_refused(kwargs, expected):
     with pytest.raises(RegistrationError) as err:
         Stage1Settings(**kwargs)
-    assert expected in _one_line(err)
+    assert _one_line(err).startswith(f"Stage1Settings: {expected}")
+
+
+def test_settings_are_normalised_and_stay_hashable():
+    """Lists become tuples and ints floats, as declared; a frozen, hashable value."""
+    settings = Stage1Settings(clipped_shifts=[0.0, 0.1], lm_damping=1, reference_up=[0, 0, 1])
+    assert settings.clipped_shifts == (0.0, 0.1) and type(settings.lm_damping) is float
+    assert settings.reference_up == (0.0, 0.0, 1.0)
+    same = Stage1Settings(clipped_shifts=(0.0, 0.1), lm_damping=1.0, reference_up=(0, 0, 1))
+    assert settings == same and hash(settings) == hash(same)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.yaw_starts = 2  # type: ignore[misc]

@@ -110,9 +110,15 @@ def test_each_meaning_is_the_settings_own_or_its_docstring_entry():
     named = _template_keys(text)
     cfg = RegisterConfig()
     # settings fields (motion.settings.setting) carry their own one-line meaning
-    for group in (cfg.video, cfg.perception):
+    groups = {
+        "video": cfg.video,
+        "perception": cfg.perception,
+        "stage1": cfg.registration.stage1,
+        "movement": cfg.movement,
+        "findings": cfg.findings,
+    }
+    for prefix, group in groups.items():
         assert isinstance(group, Settings)
-        prefix = "video" if group is cfg.video else "perception"
         for f in dataclasses.fields(group):
             doc = " ".join(f.metadata["setting"].doc.split())
             assert _comments_above(text, named[f"{prefix}.{f.name}"]) == doc, f.name
@@ -123,9 +129,6 @@ def test_each_meaning_is_the_settings_own_or_its_docstring_entry():
         "iterations, restarts: particle BP passes"
     )
     assert _comments_above(text, named["refine.restarts"]) == ""
-    assert _comments_above(text, named["findings.method_error_deg"]).startswith(
-        "the method's own error of a joint-angle difference, degrees"
-    )
     assert _comments_above(text, named["seed"]) == "seed of every random draw"
     # a group names the class that documents it
     assert "motion.registration.refine.RefineSettings" in _comments_above(text, "refine:")

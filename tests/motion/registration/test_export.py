@@ -684,8 +684,10 @@ def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_ze
     clear = dataclasses.replace(sure, mean_difference_deg=-30.0)
     assert careful.why_not(clear, 25.0) == ""
     assert careful.why_not(dataclasses.replace(unmeasured, mean_difference_deg=-20.0), 25) != ""
-    with pytest.raises(ValueError, match="interval_z, min_trusted_s and method_error_deg must"):
+    with pytest.raises(ValueError, match=r"^FindingSettings: interval_z must be >= 0; got -1.0"):
         FindingSettings(interval_z=-1.0)
+    with pytest.raises(ValueError, match=r"method_error_deg must be a finite number; got nan"):
+        FindingSettings(method_error_deg=math.nan)
 
 
 def test_summary_withholds_the_findings_the_inference_cannot_tell_from_zero(reference):

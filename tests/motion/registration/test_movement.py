@@ -117,9 +117,11 @@ def test_stop_and_go_or_racing_c_does_not_match():
 
 
 def test_bad_settings_are_refused():
-    with pytest.raises(ValueError, match=r"max_stalled must be in \(0, 1\]"):
+    with pytest.raises(ValueError, match=r"^MovementSettings: max_stalled must be in \(0, 1\]"):
         MovementSettings(max_stalled=0.0)
-    with pytest.raises(ValueError, match="max_travel_ratio must exceed 1"):
+    with pytest.raises(ValueError, match=r"max_travel_ratio must be > 1; got 1\.0"):
         MovementSettings(max_travel_ratio=1.0)
-    with pytest.raises(ValueError, match="fast_step_factor must exceed 1"):
+    with pytest.raises(ValueError, match=r"fast_step_factor must be > 1; got 0\.5"):
         MovementSettings(fast_step_factor=0.5)
+    with pytest.raises(ValueError, match=r"travelling_m must be >= 0; got -1\.0"):
+        MovementSettings(travelling_m=-1.0)
