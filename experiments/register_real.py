@@ -118,6 +118,9 @@ class RegisterRealConfig(ExperimentConfig):
     iterations: int = setting(4, "particle BP iterations per pass", ge=1)
     restarts: int = setting(1, "particle BP passes", ge=1)
     seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    polish_steps: int = setting(
+        50, "steps of motion register's posture polish (its default: 50; 0: none)", ge=0
+    )
     out_dir: str = setting("runs/register_real", "output folder")
     tiny: bool = setting(False, "a quick run (8 frames at 96 px, 12 particles, 1 iteration)")
 
@@ -142,6 +145,7 @@ def _overrides(cfg: RegisterRealConfig, width: int) -> tuple[str, ...]:
         f"refine.iterations={cfg.iterations}",
         f"refine.restarts={cfg.restarts}",
         f"refine.band={band}",
+        f"polish.steps={cfg.polish_steps}",
         f"seed={cfg.seed}",
     )
 

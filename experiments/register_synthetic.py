@@ -22,7 +22,13 @@ evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``; ``a_swin
 twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
 ``a_swing_err_deg_mean_no_change`` score the anchor "no articulation difference" (A =
 identity) the same way: the size of the true A, what a registration that recovers nothing
-of it scores; ``findings_stated`` (how many of the
+of it scores; ``a_err_deg_mean_long_bones`` (and ``_no_change``) the same over the joints
+whose bone is at least :data:`LONG_BONE` of the height (thighs, shins, upper arms,
+forearms); ``bone_dir_err_deg_mean`` (and ``_no_change``: the reference's rotations at C under
+the estimated T) the angle between those bones' estimated and true directions in the world,
+from joint positions -- the articulation as an image shows it, free of the twist about a
+bone that local rotations carry into every child, and of the two skeletons' rest poses;
+``sec_polish`` the posture polish's seconds; ``findings_stated`` (how many of the
 summary's largest differences ``motion register`` would state), ``findings_agree_fraction``
 (of those, the share that agree with the truth in sign and within
 :data:`FINDING_AGREE_DEG`: the true difference of clinical angles, :mod:`motion.angles`, over
@@ -223,6 +229,45 @@ def _bone_directions(reference: Reference, joints: list[int]) -> Tensor:
     return torch.stack(out)
 
 
+#: a bone counts as long (its direction visible in a small image) at this share of the height
+LONG_BONE = 0.12
+
+
+def _long_bones(reference: Reference, joints: list[int]) -> list[int]:
+    """Positions in ``joints`` whose bone (the mean offset of the joint's children) is at
+    least :data:`LONG_BONE` of the reference's height in its rest pose."""
+    offsets, parents = reference.skeleton.offsets, reference.skeleton.parents
+    rest = reference.body_frames(torch.zeros(1, dtype=torch.long)).positions[0]
+    height = float(rest[:, 1].amax() - rest[:, 1].amin())
+    out = []
+    for i, j in enumerate(joints):
+        children = (parents == j).nonzero().flatten()
+        bone = offsets[children].mean(0) if len(children) else offsets[j]
+        if float(bone.norm()) >= LONG_BONE * height:
+            out.append(i)
+    return out
+
+
+def _bone_direction_error_deg(
+    reference: Reference, joints: list[int], estimated: Tensor, true: Tensor
+) -> Tensor:
+    """``(T', J')`` degrees: the angle between each bone's estimated and true direction in
+    the world (from the joint to the mean of its children), from joint positions ``(T', J,
+    3)`` -- the articulation as an image shows it, free of the twist about a bone and of
+    how each skeleton's rest pose sets its local frames."""
+    parents = reference.skeleton.parents
+    children = [(parents == j).nonzero().flatten() for j in joints]
+
+    def directions(positions: Tensor) -> Tensor:
+        bones = [
+            positions[:, c].mean(1) - positions[:, j] for j, c in zip(joints, children, strict=True)
+        ]
+        return torch.nn.functional.normalize(torch.stack(bones, 1), dim=-1)
+
+    cos = (directions(estimated.double()) * directions(true.double())).sum(-1)
+    return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
+
+
 def _swing_error_deg(a_true: Tensor, a_est: Tensor, directions: Tensor) -> Tensor:
     """The articulation error a capsule can show: the angle between the bone directions
     ``(J', 3)`` turned by the true and the estimated A ``(T', J', 3, 3)`` (its twist about
@@ -297,10 +342,24 @@ def run(cfg: RegisterSyntheticConfig):
     no_change = torch.eye(3, dtype=a_true.dtype).expand_as(a_true[:, driven])
     a_err0 = rotation_angle_error_deg(a_true[:, driven], no_change)
     swing0 = _swing_error_deg(a_true[:, driven], no_change, _bone_directions(reference, driven))
+    # the long bones (thighs, shins, upper arms, forearms...): the joints whose bone is at
+    # least LONG_BONE of the body's height, whose direction an image can show; hands, feet
+    # and the neck turn short bones that a 320 px silhouette hardly shows
+    long = _long_bones(reference, driven)
     t_rot = rotation_angle_error_deg(truth.rotation, result.T_rotation)
     t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
     joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
     e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height
+    long_joints = [driven[i] for i in long]
+    bone_err = _bone_direction_error_deg(reference, long_joints, joints, truth.joints)
+    unchanged = reference.rotations[result.C].clone()
+    unchanged[:, 0] = result.T_rotation
+    bone_err0 = _bone_direction_error_deg(
+        reference,
+        long_joints,
+        _student_joints(reference, unchanged, result.T_translation, result.G),
+        truth.joints,
+    )
     movement = check_movement(
         result.C,
         result.T_translation,
@@ -338,6 +397,11 @@ def run(cfg: RegisterSyntheticConfig):
         "a_swing_err_deg_mean": float(swing.mean()),
         "a_err_deg_mean_no_change": float(a_err0.mean()),
         "a_swing_err_deg_mean_no_change": float(swing0.mean()),
+        "a_err_deg_mean_long_bones": float(a_err[:, long].mean()),
+        "a_err_deg_mean_long_bones_no_change": float(a_err0[:, long].mean()),
+        "bone_dir_err_deg_mean": float(bone_err.mean()),
+        "bone_dir_err_deg_mean_no_change": float(bone_err0.mean()),
+        "sec_polish": result.timings.get("polish", 0.0),
         "e3d_mean": float(e3d.mean()),
         "silhouette_iou_mean": float(result.fit.mean()),
         "G": float(result.G),

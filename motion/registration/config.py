@@ -12,7 +12,7 @@ strict YAML reader of :mod:`motion.settings_yaml` (YAML 1.2 scalars, duplicate k
 A key that is not a field, or a value of another type or range than the field's, is a
 :class:`ConfigError` (:class:`motion.settings.ConfigError`) of one line naming where (the file
 and line, or ``command line``), the key, what was expected and what was given. The groups
-that are :class:`motion.settings.Settings` (video, perception, stage1, movement, findings)
+that are :class:`motion.settings.Settings` (video, perception, stage1, polish, movement, findings)
 check each value against the field's declared type and range; the others (refine, the
 pipeline's scale and seed) against the field's annotation, then their own checks.
 
@@ -239,7 +239,7 @@ def _unknown(obj, item: _Item, fields) -> ConfigError:
     hint = f" (did you mean {' or '.join(close)}?)" if close else ""
     if isinstance(obj, RegisterConfig):
         known = (
-            "video.*, perception.*, stage1.*, refine.*, movement.*, findings.*, scale, seed "
+            "video.*, perception.*, stage1.*, refine.*, polish.*, movement.*, findings.*, scale, seed "
             "(python -m motion register --help)"
         )
     else:
@@ -320,7 +320,7 @@ def override(obj, key: str, value, where: str = "settings"):
 
 
 #: top-level shortcuts: ``seed=1`` means ``registration.seed=1``
-_SHORTCUTS = ("seed", "scale", "stage1", "refine")
+_SHORTCUTS = ("seed", "scale", "stage1", "refine", "polish")
 
 
 def _route(key: str) -> str:

@@ -9,7 +9,9 @@
   monotone chain, coarse to fine (:func:`~motion.registration.approximate.
   approximate_registration`);
 * stages 2-3 -- T and A by particle BP on the spatiotemporal body graph, alternating with C
-  through the same graph (:func:`~motion.registration.refine.refine`).
+  through the same graph (:func:`~motion.registration.refine.refine`);
+* the posture polish -- T and A moved on the skeleton by gradient descent against the
+  silhouettes and 2-D joints (:func:`~motion.registration.polish.polish_posture`).
 
 Every stage is a function with typed inputs and outputs; this module only runs them in order,
 times them and assembles the result. Deterministic under ``settings.seed``.
@@ -36,7 +38,8 @@ from motion.registration.approximate import (
     approximate_registration,
     estimate_body_scale,
 )
-from motion.registration.refine import Progress, RefineSettings, refine
+from motion.registration.polish import PosturePolishSettings, polish_posture
+from motion.registration.refine import Progress, RefineSettings, place_poses, refine
 from motion.registration.types import (
     FRAME_CHUNK,
     Reference,
@@ -59,12 +62,15 @@ class RegistrationSettings:
     Attributes:
         stage1: approximate registration (:class:`Stage1Settings`).
         refine: stages 2-3 (:class:`RefineSettings`).
+        polish: the posture polish after them (:class:`PosturePolishSettings`; ``steps=0``
+            leaves BP's posture as it is).
         scale: the body scale G if known (``None``: estimated in stage 0).
         seed: seed of every random draw.
     """
 
     stage1: Stage1Settings = field(default_factory=Stage1Settings)
     refine: RefineSettings = field(default_factory=RefineSettings)
+    polish: PosturePolishSettings = field(default_factory=PosturePolishSettings)
     scale: float | None = None
     seed: int = 0
 
@@ -223,18 +229,30 @@ def register(
     notes["stage3_rounds"] = f"{len(refined.c_changes)} (frames changed: {refined.c_changes})"
 
     c = refined.C
-    a = reference.rotations[c].transpose(-1, -2) @ refined.rotations
+    t0 = time.perf_counter()
+    polished = polish_posture(
+        reference, video, c, refined.rotations, refined.translation, scale, s.polish
+    )
+    rotations, translation = polished.rotations.to(refined.rotations), polished.translation
+    translation = translation.to(refined.translation)
+    timings["polish"] = time.perf_counter() - t0
+    if s.polish.steps:
+        notes["polish"] = f"loss {polished.loss_start:.1f} -> {polished.loss_end:.1f} nats"
+    a = reference.rotations[c].transpose(-1, -2) @ rotations
     a[:, 0] = torch.eye(3, dtype=a.dtype)
     spec = scaled_spec(reference.spec, scale)
     shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
-    fit = silhouette_iou(shapes, video.cameras, video.observation.silhouette[0], refined.poses)
+    poses = place_poses(rotations[:, 0], translation, reference.posture_poses(rotations, scale))
+    fit = silhouette_iou(
+        shapes, video.cameras, video.observation.silhouette[0], poses.to(refined.poses)
+    )
     return Registration(
         C=c,
-        T_rotation=refined.rotations[:, 0],
-        T_translation=refined.translation,
+        T_rotation=rotations[:, 0],
+        T_translation=translation,
         A=a,
         G=scale,
-        rotations=refined.rotations,
+        rotations=rotations,
         fit=fit,
         C_stage1=stage1.C,
         timings=timings,

@@ -13,7 +13,9 @@ import torch
 
 from experiments.register_synthetic import (
     Truth,
+    _bone_direction_error_deg,
     _bone_directions,
+    _long_bones,
     _swing_error_deg,
     angle_error_metrics,
     finding_agreement,
@@ -144,3 +146,45 @@ def test_angle_error_metrics_measure_the_error_and_how_often_the_uncertainty_cov
         dataclasses.replace(angles, uncertainty_deg=None), torch.zeros(3, 2), trusted
     )
     assert math.isnan(plain["angle_err_within_2u"])
+
+
+def test_bone_direction_error_measures_a_bend_and_ignores_a_twist_and_the_skeletons_rest_pose():
+    """From joint positions: a knee bent 25 degrees more reads 25 at the thigh's child (the
+    shin), 0 elsewhere; the forearm twisted about its own axis moves no joint and reads 0;
+    the long bones are the limbs' (thighs, shins, upper arms, forearms)."""
+    ref = Reference.from_bvh(WALK)
+    driven = sorted(set(ref.spec.frame_joints.tolist()) - {0})
+    long = [driven[i] for i in _long_bones(ref, driven)]
+    names = [ref.skeleton.names[j] for j in long]
+    assert {"LeftUpLeg", "LeftLeg", "RightArm", "RightForeArm"} <= set(names)
+    assert not {"LeftFoot", "Neck1", "LeftFingerBase"} & set(names)
+    frames = torch.arange(3)
+    rotations = ref.rotations[frames].clone()
+    true = ref.body_frames(frames).positions
+    knee = ref.skeleton.index("LeftLeg")
+    bent = rotations.clone()
+    d = _bone_directions(ref, [knee])[0]  # the shin in the knee's frame
+    side = torch.nn.functional.normalize(
+        torch.linalg.cross(d, torch.tensor([0.0, 0, 1], dtype=torch.float64)), dim=0
+    )
+    k = torch.tensor(
+        [[0, -side[2], side[1]], [side[2], 0, -side[0]], [-side[1], side[0], 0]],
+        dtype=torch.float64,
+    )
+    bent[:, knee] = bent[:, knee] @ torch.linalg.matrix_exp(math.radians(25) * k)
+    moved = ref.posture_frames(bent).positions
+    err = _bone_direction_error_deg(ref, long, moved, true)
+    shin = long.index(knee)
+    assert torch.allclose(err[:, shin], torch.full((3,), 25.0, dtype=torch.float64), atol=1e-6)
+    others = [i for i in range(len(long)) if i != shin]
+    assert float(err[:, others].abs().max()) < 1e-5
+    forearm = ref.skeleton.index("LeftForeArm")
+    along = _bone_directions(ref, [forearm])[0]
+    kk = torch.tensor(
+        [[0, -along[2], along[1]], [along[2], 0, -along[0]], [-along[1], along[0], 0]],
+        dtype=torch.float64,
+    )
+    twisted = rotations.clone()
+    twisted[:, forearm] = twisted[:, forearm] @ torch.linalg.matrix_exp(math.radians(40) * kk)
+    err = _bone_direction_error_deg(ref, long, ref.posture_frames(twisted).positions, true)
+    assert float(err.max()) < 1e-5

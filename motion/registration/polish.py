@@ -1,0 +1,384 @@
+"""Stage 2b: the registered posture polished on the skeleton, against the images.
+
+Particle BP (stages 2-3) estimates each body part as a free rigid body; the posture fit
+(:mod:`motion.body.fit`) then hangs the reference's skeleton on those estimates, pulling
+every joint toward the reference's rotation at C(t'). What comes out is a posture of the
+right kind, off by the particles' sampling error. This stage moves the skeleton itself --
+each driven joint's rotation, the root's rotation and position, all frames together -- by
+gradient descent (Adam) on
+
+* **the silhouettes, both ways, at sampled points** (O(points), not O(pixels): DESIGN.md
+  section 7): points on every capsule's projected outline pay their squared distance
+  (pixels) outside the observed silhouette (read by bilinear interpolation from its distance
+  map), and sampled pixels of the observed silhouette pay their squared distance outside the
+  body (the nearest capsule's signed distance, :func:`motion.render.capsule_sdf`); each
+  camera's term is the mean over its points, in nats per squared ``silhouette_px``;
+* **the 2-D joints**, where given: a Cauchy term ``log(1 + r^2 / s^2)`` of each joint's
+  reprojection error ``r`` in each camera, weighted by the detector's confidence;
+* **the articulation prior** ``E_A``: each driven joint's rotation angle away from the
+  reference's at C(t'), Gaussian with a broad spread (a student differs from the reference
+  in every joint by ten or twenty degrees, not in a few by much);
+* **smoothness**: the change of every joint's correction, and of the root's, from one video
+  frame to the next.
+
+C and G stay as given; the frames are solved in chunks, each chunk's first frame tied to the
+previous chunk's last.
+
+Conventions: metres, radians, pixels; column vectors, right-handed world (DESIGN.md section
+3). Shapes: ``T'`` video frames, ``J`` joints, ``C`` cameras, ``P`` parts, ``N`` points.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from motion.body.spec import BodySpec
+from motion.cameras import CameraRig
+from motion.features import distance_to_edges
+from motion.geometry import rotation_vector_to_matrix
+from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
+from motion.render import capsule_sdf, project_parts
+from motion.settings import SettingError, Settings, setting
+
+__all__ = ["PolishResult", "PosturePolishSettings", "polish_posture"]
+
+
+class PosturePolishSettingsError(SettingError, RegistrationError):
+    """A posture polish setting outside its type or range."""
+
+
+@dataclass(frozen=True)
+class PosturePolishSettings(Settings):
+    """Settings of :func:`polish_posture` (every field checked at construction)."""
+
+    setting_error = PosturePolishSettingsError
+
+    steps: int = setting(50, "Adam steps of the posture polish (0: no polish)", ge=0, le=100000)
+    lr: float = setting(
+        0.02, "Adam's step size: radians (and metres for the root) per step, about", gt=0, le=1
+    )
+    silhouette: float = setting(
+        1.0,
+        "weight of each camera's silhouette term (nats per squared silhouette_px of mean "
+        "distance outside; 0 leaves the silhouettes out)",
+        ge=0,
+    )
+    silhouette_px: float = setting(
+        0.5, "pixels, the spread of the outline's distance from the silhouette's", gt=0
+    )
+    silhouette_samples: int = setting(
+        128, "pixels of each observed silhouette sampled for the body's cover of it", ge=1
+    )
+    outline_points: int = setting(
+        8, "points on each side of a capsule's projected outline (and 2 on each cap)", ge=2
+    )
+    keypoints: float = setting(
+        1.0,
+        "weight of the 2-D joints' Cauchy term, nats per joint and camera at confidence 1 "
+        "(0 leaves them out)",
+        ge=0,
+    )
+    keypoint_px: float = setting(4.0, "pixels, the 2-D joints' Cauchy scale", gt=0)
+    articulation_deg: float = setting(
+        20.0,
+        "degrees, the spread of each joint's rotation about the reference's at C (the "
+        "articulation prior)",
+        gt=0,
+        le=180,
+    )
+    smooth_deg: float = setting(
+        3.0, "degrees, the spread of a joint's correction's change from frame to frame", gt=0
+    )
+    smooth_m: float = setting(
+        0.01, "metres, the spread of the root's correction's change from frame to frame", gt=0
+    )
+    frames_per_chunk: int = setting(64, "video frames solved together", ge=2)
+    seed: int = setting(0, "seed of the silhouette pixels' sampling", ge=0)
+
+
+@dataclass
+class PolishResult:
+    """The polished posture: local ``rotations`` ``(T', J, 3, 3)`` float64 (the root's is
+    T's), root ``translation`` ``(T', 3)`` metres, and the loss before and after
+    (``loss_start``, ``loss_end``: nats, summed over the chunks)."""
+
+    rotations: Tensor
+    translation: Tensor
+    loss_start: float
+    loss_end: float
+
+
+@dataclass
+class _Targets:
+    """What the images say, for one chunk: the silhouette's distance map ``(n, C, H, W)``
+    (pixels to the nearest silhouette pixel; 0 inside), sampled silhouette pixels ``(n, C,
+    N, 2)`` (u, v) with a mask ``(n, C, N)`` of the real ones, each view's weight ``(n,
+    C)`` (0: an empty silhouette), and the 2-D joints ``(n, C, K, 3)`` or ``None``."""
+
+    outside: Tensor
+    samples: Tensor
+    sample_mask: Tensor
+    view: Tensor
+    keypoints: Tensor | None
+
+
+def _silhouette_targets(
+    silhouette: Tensor, samples: int, generator: torch.Generator
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Distance maps, sampled pixels, their mask and each view's weight of silhouettes
+    ``(n, C, H, W)`` in [0, 1] (see :class:`_Targets`)."""
+    n, c, h, w = silhouette.shape
+    inside = silhouette > 0.5
+    view = inside.flatten(2).any(-1)  # (n, C)
+    outside = distance_to_edges(inside.reshape(n * c, 1, h, w)).reshape(n, c, h, w)
+    outside = torch.where(view[..., None, None], outside, torch.zeros_like(outside))
+    # sampled pixels: a uniform draw (with replacement) from each view's silhouette
+    flat = inside.reshape(n * c, h * w).float()
+    weights = torch.where(flat.sum(-1, keepdim=True) > 0, flat, torch.ones_like(flat))
+    index = torch.multinomial(weights, samples, replacement=True, generator=generator)
+    uv = torch.stack([index % w, index // w], -1).float().reshape(n, c, samples, 2)
+    mask = view[..., None].expand(n, c, samples)
+    return outside, uv, mask, view.float()
+
+
+def _sample_map(maps: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear read of ``maps`` ``(n, C, H, W)`` at pixels ``uv`` ``(n, C, N, 2)`` (pixel
+    centres at integers; outside the image: the border's value) -> ``(n, C, N)``."""
+    n, c, h, w = maps.shape
+    grid = torch.stack([uv[..., 0] / max(w - 1, 1), uv[..., 1] / max(h - 1, 1)], -1) * 2 - 1
+    out = F.grid_sample(
+        maps.reshape(n * c, 1, h, w),
+        grid.reshape(n * c, 1, -1, 2).to(maps),
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )
+    return out.reshape(n, c, -1)
+
+
+def capsule_outline(ends: Tensor, radii: Tensor, per_side: int) -> Tensor:
+    """Points on the outline of 2-D capsules: ``per_side`` points on each straight side
+    (the discs' common tangents, approximated by the normals at the axis) and 2 on each cap
+    (along the axis beyond each end).
+
+    Args:
+        ends: ``(..., 2, 2)`` pixels, the axis's two end points.
+        radii: ``(..., 2)`` pixels at the two ends.
+        per_side: points per side (>= 2).
+
+    Returns:
+        ``(..., 2 per_side + 4, 2)`` pixels.
+    """
+    a, b = ends[..., 0, :], ends[..., 1, :]
+    axis = b - a
+    unit = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    normal = torch.stack([-unit[..., 1], unit[..., 0]], -1)
+    t = torch.linspace(0, 1, per_side, dtype=ends.dtype, device=ends.device)[:, None]
+    centre = a[..., None, :] + t * axis[..., None, :]  # (..., S, 2)
+    r = (radii[..., 0:1] + t[:, 0] * (radii[..., 1:2] - radii[..., 0:1]))[..., None]
+    sides = [centre + r * normal[..., None, :], centre - r * normal[..., None, :]]
+    caps = [
+        a - radii[..., 0:1] * unit,
+        b + radii[..., 1:2] * unit,
+        a + radii[..., 0:1] * (normal - unit) / math.sqrt(2),
+        b + radii[..., 1:2] * (unit - normal) / math.sqrt(2),
+    ]
+    return torch.cat([*sides, torch.stack(caps, -2)], -2)
+
+
+class _Posture:
+    """The skeleton's posture as a function of the corrections being optimised."""
+
+    def __init__(self, reference: Reference, scale: float, start: Tensor, driven: list[int]):
+        self.reference = reference
+        self.scale = scale
+        self.start = start.double()  # (n, J, 3, 3)
+        self.mask = torch.zeros(start.shape[1], 1, dtype=torch.float64)
+        self.mask[driven] = 1.0
+
+    def rotations(self, joints: Tensor, root: Tensor) -> Tensor:
+        """Local rotations ``(n, J, 3, 3)``: each driven joint's start turned by its
+        correction ``joints`` ``(n, J, 3)`` (rotation vectors, in the joint's frame), the
+        root's start turned by ``root`` ``(n, 3)`` in the world."""
+        local = self.start @ rotation_vector_to_matrix(joints * self.mask)
+        top = rotation_vector_to_matrix(root) @ self.start[:, 0]
+        return torch.cat([top[:, None], local[:, 1:]], 1)
+
+    def world_joints(self, rotations: Tensor, translation: Tensor) -> Tensor:
+        """``(n, J, 3)`` metres: every joint in the world."""
+        fk = self.reference.posture_frames(rotations, self.scale)
+        rotated = (rotations[:, None, 0] @ fk.positions[..., None]).squeeze(-1)
+        return rotated + translation[:, None]
+
+    def segments(self, spec: BodySpec, rotations: Tensor, translation: Tensor) -> Tensor:
+        """``(n, P, 2, 3)`` metres: every capsule's axis in the world."""
+        ref = self.reference
+        fk = ref.posture_frames(rotations, self.scale)
+        poses = spec.poses(ref.model, ref.skeleton, fk)
+        ends = spec.landmarks(poses)  # (n, P, 2, 3) in the root's frame, scaled
+        root = rotations[:, 0][:, None, None]
+        return (root @ ends[..., None]).squeeze(-1) + translation[:, None, None]
+
+
+def _losses(
+    posture: _Posture,
+    spec: BodySpec,
+    rig: CameraRig,
+    targets: _Targets,
+    keypoint_joints: Tensor | None,
+    reference_rotations: Tensor,
+    driven: list[int],
+    joints: Tensor,
+    root: Tensor,
+    shift: Tensor,
+    translation: Tensor,
+    anchor: tuple[Tensor, Tensor, Tensor] | None,
+    s: PosturePolishSettings,
+) -> dict[str, Tensor]:
+    """Each term of the polish's loss (nats) at corrections ``joints`` ``(n, J, 3)``,
+    ``root`` ``(n, 3)``, ``shift`` ``(n, 3)`` metres."""
+    rotations = posture.rotations(joints, root)
+    moved = translation + shift
+    terms: dict[str, Tensor] = {}
+    if s.silhouette > 0:
+        # float32 from here: the signed distances of every sampled pixel to every capsule
+        # are the polish's bulk (float64 took twice as long for the same result)
+        segments = posture.segments(spec, rotations, moved).float()
+        parts = project_parts(rig, segments, spec.shapes.radii.to(segments))
+        # the body's outline, outside the silhouette
+        outline = capsule_outline(parts.ends, parts.radii, s.outline_points)  # (n,C,P,S,2)
+        n, c = outline.shape[:2]
+        out = _sample_map(targets.outside, outline.reshape(n, c, -1, 2)).square().mean(-1)
+        # the silhouette's pixels, outside the body
+        sdf, _ = capsule_sdf(targets.samples[:, :, None], parts.ends, parts.radii)
+        uncovered = sdf.amin(-2).clamp_min(0).square()  # (n, C, N)
+        cover = (uncovered * targets.sample_mask).sum(-1) / targets.sample_mask.sum(-1).clamp_min(1)
+        per_view = (out + cover) / (2 * s.silhouette_px**2)
+        terms["silhouette"] = s.silhouette * (per_view * targets.view).sum().double()
+    if s.keypoints > 0 and targets.keypoints is not None and keypoint_joints is not None:
+        world = posture.world_joints(rotations, moved)[:, keypoint_joints]  # (n, K, 3)
+        uv, depth = rig.project(world)  # (n, C, K, 2), (n, C, K)
+        kp = targets.keypoints.to(uv)
+        confidence = torch.where(depth > 0, kp[..., 2], torch.zeros_like(kp[..., 2]))
+        r2 = (uv - kp[..., :2]).square().sum(-1)
+        terms["keypoints"] = s.keypoints * (confidence * torch.log1p(r2 / s.keypoint_px**2)).sum()
+    articulation = reference_rotations.transpose(-1, -2) @ rotations[:, driven]
+    trace = articulation.diagonal(dim1=-2, dim2=-1).sum(-1)
+    # acos's gradient is infinite at 0: the prior reads 2 (1 - cos a) ~ a^2 instead
+    terms["articulation"] = ((3 - trace) / math.radians(s.articulation_deg) ** 2).sum()
+    if anchor is not None:  # the previous chunk's last frame, fixed
+        joints = torch.cat([anchor[0], joints])
+        root = torch.cat([anchor[1], root])
+        shift = torch.cat([anchor[2], shift])
+    turn = (joints[1:] - joints[:-1]) * posture.mask
+    smooth = turn.square().sum() + (root[1:] - root[:-1]).square().sum()
+    terms["smoothness"] = smooth / (2 * math.radians(s.smooth_deg) ** 2) + (
+        shift[1:] - shift[:-1]
+    ).square().sum() / (2 * s.smooth_m**2)
+    return terms
+
+
+def polish_posture(
+    reference: Reference,
+    video: VideoFeatures,
+    c: Tensor,
+    rotations: Tensor,
+    translation: Tensor,
+    scale: float,
+    settings: PosturePolishSettings | None = None,
+) -> PolishResult:
+    """Polish a registered posture against the video (see the module's docstring).
+
+    Args:
+        reference: the reference motion (skeleton, body model, C's postures).
+        video: the features: silhouettes and, where given, 2-D joints (``keypoint_joints``
+            names the skeleton joint of each column).
+        c: ``(T',)`` long, C.
+        rotations: ``(T', J, 3, 3)`` local rotations to start from (the root's is T's).
+        translation: ``(T', 3)`` metres, the root's position.
+        scale: the body scale G.
+        settings: :class:`PosturePolishSettings`.
+
+    Returns:
+        :class:`PolishResult`.
+    """
+    s = settings or PosturePolishSettings()
+    t, j = rotations.shape[:2]
+    if c.shape != (t,) or translation.shape != (t, 3) or video.num_frames != t:
+        raise RegistrationError(
+            f"expected C ({t},), translation ({t}, 3) and {t} video frames; got "
+            f"{tuple(c.shape)}, {tuple(translation.shape)}, {video.num_frames}"
+        )
+    start = PolishResult(rotations.double(), translation.double(), 0.0, 0.0)
+    if s.steps == 0:
+        return start
+    spec = scaled_spec(reference.spec, scale)
+    driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
+    obs = video.observation
+    keypoint_joints = None
+    if obs.keypoints is not None and video.keypoint_joints is not None:
+        names = reference.skeleton.names
+        keypoint_joints = torch.tensor([names.index(name) for name in video.keypoint_joints])
+    generator = torch.Generator().manual_seed(s.seed)
+    out_rot, out_trans = start.rotations.clone(), start.translation.clone()
+    before = after = 0.0
+    anchor = None
+    for first in range(0, t, s.frames_per_chunk):
+        chunk = slice(first, min(t, first + s.frames_per_chunk))
+        outside, samples, sample_mask, view = _silhouette_targets(
+            obs.silhouette[0, chunk].float(), s.silhouette_samples, generator
+        )
+        keypoints = None if obs.keypoints is None else obs.keypoints[0, chunk].double()
+        targets = _Targets(outside, samples, sample_mask, view, keypoints)
+        posture = _Posture(reference, scale, out_rot[chunk], driven)
+        ref_rot = reference.rotations[c[chunk]][:, driven].double()
+        n = chunk.stop - chunk.start
+        joints = torch.zeros(n, j, 3, dtype=torch.float64, requires_grad=True)
+        root = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+        shift = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+        optimiser = torch.optim.Adam([joints, root, shift], lr=s.lr)
+        base = out_trans[chunk]
+        losses: list[float] = []
+        best = (math.inf, None)
+        for step in range(s.steps + 1):  # the last pass only scores the last step
+            optimiser.zero_grad()
+            terms = _losses(
+                posture,
+                spec,
+                video.cameras,
+                targets,
+                keypoint_joints,
+                ref_rot,
+                driven,
+                joints,
+                root,
+                shift,
+                base,
+                anchor,
+                s,
+            )
+            loss = sum(terms.values())
+            if not torch.isfinite(loss):
+                break
+            losses.append(float(loss.detach()))
+            if losses[-1] < best[0]:  # Adam jitters about an optimum by ~lr: keep the best
+                best = (losses[-1], [x.detach().clone() for x in (joints, root, shift)])
+            if step < s.steps:
+                loss.backward()
+                optimiser.step()
+        if best[1] is None:  # nothing finite to descend: the chunk keeps its start
+            anchor = None
+            continue
+        best_joints, best_root, best_shift = best[1]
+        with torch.no_grad():
+            out_rot[chunk] = posture.rotations(best_joints, best_root)
+            out_trans[chunk] = base + best_shift
+            anchor = (best_joints[-1:], best_root[-1:], best_shift[-1:])
+        before += losses[0]
+        after += best[0]
+    return PolishResult(out_rot, out_trans, before, after)
