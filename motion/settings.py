@@ -9,8 +9,12 @@ A settings class is a dataclass deriving from :class:`Settings` whose fields are
 
 The annotation gives the type (``bool``, ``int``, ``float``, ``str``, ``list[...]`` of those,
 ``tuple[float, ...]`` or ``tuple[float, float, float]`` (kept a tuple, of that length),
-``dict[str, float]``, or any other class whose values are listed as ``choices``; optionally
-``... | None``); the metadata gives the range, the allowed choices and a one-line meaning.
+``dict[str, float]``, another :class:`Settings` class (a nested group of settings, its
+default a ``default_factory``; given as an instance, or as a mapping of its keys), or any other
+class whose values are listed as ``choices``; optionally ``... | None``); the metadata gives the
+range, the allowed choices and a one-line meaning. A field declared ``opaque=True`` (a schedule
+object, a plain dataclass of a lower layer) is not checked, not read from text and not
+settable in a file (shown so by :func:`describe`).
 Construction checks every field (``__post_init__``); :func:`coerce` checks one value as it
 arrives (from YAML or from Python), :func:`from_text` parses the text of a ``key=value``
 command-line setting, :func:`describe` lists the fields (plain text, for ``--help``) and
@@ -47,6 +51,7 @@ __all__ = [
     "describe",
     "echo",
     "from_text",
+    "is_opaque",
     "setting",
     "show",
     "unknown_key",
@@ -79,6 +84,8 @@ class Spec:
         example: the command-line text form, shown in errors and help (e.g. ``"320x240"``).
         path: ``"file"`` or ``"dir"``: the value names one that must exist (checked when
             :func:`coerce` is asked to, i.e. for values a user gave, not for defaults).
+        opaque: the value is not checked, parsed from text or settable in a file (only
+            Python code sets it); its annotation may be any type.
     """
 
     doc: str = ""
@@ -92,16 +99,28 @@ class Spec:
     sep: str = ","
     example: str | None = None
     path: str | None = None
+    opaque: bool = False
+
+
+#: the text that says a field is set only by Python code (help, templates, errors)
+NOT_SETTABLE = "(not settable in a file)"
 
 
 def setting(
-    default: Any = dataclasses.MISSING, doc: str = "", **spec: Any
+    default: Any = dataclasses.MISSING,
+    doc: str = "",
+    *,
+    default_factory: Any = dataclasses.MISSING,
+    **spec: Any,
 ) -> Any:  # a dataclasses.Field
     """A dataclass field with its checks: ``setting(default, "meaning", gt=0, ...)`` (see
-    :class:`Spec` for the keywords). Mutable defaults (lists, dicts) are copied per instance."""
+    :class:`Spec` for the keywords). Mutable defaults (lists, dicts) are copied per instance;
+    a group of settings or an object takes ``default_factory`` instead of ``default``."""
     if "choices" in spec and spec["choices"] is not None:
         spec["choices"] = tuple(spec["choices"])
     meta = {"setting": Spec(doc=doc, **spec)}
+    if default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata=meta)
     if isinstance(default, (list, dict)):
         return dataclasses.field(
             default_factory=functools.partial(copy.deepcopy, default), metadata=meta
@@ -149,16 +168,25 @@ def _parse_type(annotation: Any) -> _Type:
     raise TypeError(f"unsupported setting type {annotation!r}")
 
 
+#: the type of an opaque field (its annotation is not read)
+_OPAQUE = _Type(object, optional=True)
+
+
+def _group(t: _Type) -> bool:
+    """Whether ``t`` is a nested group of settings (a :class:`Settings` class)."""
+    return isinstance(t.base, type) and issubclass(t.base, Settings)
+
+
 @functools.cache
 def _fields(cls: type) -> dict[str, tuple[_Type, Spec]]:
     """Field name -> (type, spec) of a settings dataclass (cached per class)."""
     hints = typing.get_type_hints(cls)
-    out = {
-        f.name: (_parse_type(hints[f.name]), f.metadata.get("setting", Spec()))
-        for f in dataclasses.fields(cls)
-    }
+    out = {}
+    for f in dataclasses.fields(cls):
+        spec = f.metadata.get("setting", Spec())
+        out[f.name] = (_OPAQUE if spec.opaque else _parse_type(hints[f.name]), spec)
     for name, (t, spec) in out.items():
-        if t.base not in _KNOWN and not spec.choices:
+        if t.base not in _KNOWN and not spec.choices and not spec.opaque and not _group(t):
             raise TypeError(f"{cls.__name__}.{name}: a {t.base.__name__} setting needs choices")
     return out
 
@@ -237,7 +265,11 @@ def _scalar(t: _Type, spec: Spec, plural: bool = False) -> str:
 
 def expected(t: _Type, spec: Spec) -> str:
     """What a value of type ``t`` under ``spec`` must be, in words."""
-    if t.base in (list, tuple):
+    if spec.opaque:
+        return f"an object {NOT_SETTABLE}"
+    if _group(t):
+        text = f"a group of settings ({t.base.__name__}: a mapping of its keys)"
+    elif t.base in (list, tuple):
         length = t.length if t.length is not None else spec.length
         lead = "a list of"
         if length is not None:
@@ -283,11 +315,15 @@ def _check_range(key: str, value: float, spec: Spec) -> None:
 
 def _coerce(value: Any, t: _Type, spec: Spec, key: str, paths: bool) -> Any:
     """Check (and normalise: int -> float, tuple -> list) one value; raises :class:`_Bad`."""
+    if spec.opaque:
+        return value
     if value is None:
         if t.optional:
             return None
         raise _must(key, expected(t, spec), value)
     base = t.base
+    if _group(t):
+        return _coerce_group(value, t, spec, key, paths)
     if base is bool:
         if not isinstance(value, bool):
             raise _must(key, "true or false", value)
@@ -339,6 +375,28 @@ def _coerce(value: Any, t: _Type, spec: Spec, key: str, paths: bool) -> Any:
     return out
 
 
+def _coerce_group(value: Any, t: _Type, spec: Spec, key: str, paths: bool) -> Any:
+    """A nested group of settings: an instance of its class as it is, or one built from a
+    mapping of its keys (each checked as its field says, then the group's own checks)."""
+    cls = t.base
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, Mapping):
+        raise _must(key, expected(t, spec), value)
+    fields = _fields(cls)
+    values = {}
+    for name, v in value.items():
+        if name not in fields:
+            raise _Bad(
+                f"{key}.{name}", f"is not a setting of {cls.__name__}; known: {', '.join(fields)}"
+            )
+        values[name] = _coerce(v, *fields[name], f"{key}.{name}", paths)
+    try:
+        return cls(**values)
+    except SettingError as err:
+        raise _Bad(key, f"does not fit together: {err}") from None
+
+
 def _check_path(key: str, value: str, kind: str) -> None:
     path = Path(value)
     try:
@@ -381,6 +439,12 @@ def coerce(
         raise _error_class(cls, error)(f"{_prefix(where)}{bad}") from None
 
 
+def is_opaque(cls: type, key: str) -> bool:
+    """Whether field ``key`` of the settings class ``cls`` is declared ``opaque`` (set only
+    by Python code, not checked; not settable in a file)."""
+    return _fields(cls)[key][1].opaque
+
+
 def unknown_key(cls: type, key: Any, where: str = "", noun: str = "key") -> str:
     """The message for a key that is not a field of ``cls``: the close matches, then all."""
     names = list(_fields(cls))
@@ -413,6 +477,12 @@ def _text_item(text: str, t: _Type) -> Any:
 
 
 def _text_value(text: str, t: _Type, spec: Spec, key: str) -> Any:
+    if spec.opaque:
+        raise _Bad(key, f"is not settable from text {NOT_SETTABLE}; got {show(text)}")
+    if _group(t):
+        raise _Bad(
+            key, f"is a group of settings ({t.base.__name__}), not one value; got {show(text)}"
+        )
     s = text.strip()
     empty = s == "" or (t.optional and s.lower() in ("none", "null"))
     if t.base not in _KNOWN and not empty:  # one of the choices, as printed (torch.float64)
@@ -464,19 +534,27 @@ def _text_form(value: Any, t: _Type, spec: Spec) -> str:
     return str(value)
 
 
-def describe(cls: type, text_syntax: bool = True, width: int = 100) -> list[str]:
+def describe(cls: type, text_syntax: bool = True, width: int = 100, prefix: str = "") -> list[str]:
     """Plain-text help lines for the fields of ``cls``: name, default, what it accepts and
-    its meaning (defaults in command-line syntax, or YAML's when ``text_syntax`` is false)."""
+    its meaning (defaults in command-line syntax, or YAML's when ``text_syntax`` is false);
+    a nested group's fields follow its line, dotted (``prefix``: the group's key and a dot)."""
     lines = []
     defaults = cls()
     for name, (t, spec) in _fields(cls).items():
         value = getattr(defaults, name)
-        default = _text_form(value, t, spec) if text_syntax else show(value, limit=60)
-        lines.append(f"  {name} (default {default}): {expected(t, spec)}")
+        if spec.opaque:
+            lines.append(f"  {prefix}{name}: {show(value, limit=60)} {NOT_SETTABLE}")
+        elif _group(t):
+            lines.append(f"  {prefix}{name}: a group of settings ({t.base.__name__})")
+        else:
+            default = _text_form(value, t, spec) if text_syntax else show(value, limit=60)
+            lines.append(f"  {prefix}{name} (default {default}): {expected(t, spec)}")
         if spec.doc:
             lines += textwrap.wrap(
                 spec.doc, width, initial_indent="      ", subsequent_indent="      "
             )
+        if _group(t) and not spec.opaque:
+            lines += describe(t.base, text_syntax, width, f"{prefix}{name}.")
     return lines
 
 

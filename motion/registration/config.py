@@ -11,10 +11,12 @@ read as YAML: ``true``, ``3``, ``0.5``, ``none``, ``[1, 2]``). Files and values 
 strict YAML reader of :mod:`motion.settings_yaml` (YAML 1.2 scalars, duplicate keys refused).
 A key that is not a field, or a value of another type or range than the field's, is a
 :class:`ConfigError` (:class:`motion.settings.ConfigError`) of one line naming where (the file
-and line, or ``command line``), the key, what was expected and what was given. The groups
-that are :class:`motion.settings.Settings` (video, perception, stage1, polish, movement, findings)
-check each value against the field's declared type and range; the others (refine, the
-pipeline's scale and seed) against the field's annotation, then their own checks.
+and line, or ``command line``), the key, what was expected and what was given. Every group is
+a :class:`motion.settings.Settings` (video, perception, the pipeline's scale and seed, stage1,
+refine, polish, movement, findings): each value is checked against the field's declared type
+and range, then the group's own checks. The fields a group declares ``opaque`` are not
+settable, except the plain number fields of refine's ``connection`` and ``temporal``
+(dataclasses of :mod:`motion.body.graph`).
 
 :func:`config_template` writes every setting as such a YAML file, each with its value and its
 meaning as a comment (``motion register --write-config PATH``); read back by
@@ -26,11 +28,8 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import inspect
-import itertools
 import re
 import textwrap
-import types
-import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +41,15 @@ from motion.registration.export import FindingSettings
 from motion.registration.movement import MovementSettings
 from motion.registration.pipeline import RegistrationSettings
 from motion.registration.video import VideoSettings
-from motion.settings import ConfigError, SettingError, Settings, coerce
+from motion.settings import (
+    NOT_SETTABLE,
+    ConfigError,
+    SettingError,
+    Settings,
+    coerce,
+    is_opaque,
+    show,
+)
 from motion.settings_yaml import line_of, load_yaml, read_yaml
 
 __all__ = [
@@ -98,85 +105,6 @@ def _flatten_at(values: Mapping, path: str, prefix: str = "") -> dict[str, tuple
 
 def _fields(obj) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(obj)}
-
-
-def _options(hint) -> tuple[list, bool]:
-    """The types a field annotated ``hint`` takes, and whether ``None`` is one of them
-    (``int | None`` -> ``([int], True)``; ``tuple[float, float]`` -> itself, not its
-    elements)."""
-    if typing.get_origin(hint) in (typing.Union, types.UnionType):
-        args = typing.get_args(hint)
-        return [a for a in args if a is not type(None)], type(None) in args
-    return [hint], False
-
-
-def _elements(hint, value) -> list | None:
-    """The element types of a list or tuple field for ``value``'s items (``None``: any)."""
-    args = typing.get_args(hint)
-    if not args:
-        return None
-    if typing.get_origin(hint) is tuple and not (len(args) == 2 and args[1] is Ellipsis):
-        return list(args)
-    return [args[0]] * len(value)
-
-
-def _fits(t, value) -> bool:
-    """Whether ``value`` (not ``None``) fits the type ``t``."""
-    origin = typing.get_origin(t) or t
-    if origin is typing.Any:
-        return True
-    if origin is float:
-        return isinstance(value, int | float) and not isinstance(value, bool)
-    if origin is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if origin in (bool, str):
-        return isinstance(value, origin)
-    if origin in (list, tuple):
-        if not isinstance(value, list | tuple):
-            return False
-        element = _elements(t, value)
-        if element is None:
-            return True
-        return len(element) == len(value) and all(
-            _accepts(e, None, v) for e, v in zip(element, value, strict=True)
-        )
-    if isinstance(origin, type):
-        return isinstance(value, origin)
-    return False
-
-
-def _accepts(hint, current, value) -> bool:
-    """Whether ``value`` fits a field annotated ``hint`` (holding ``current``)."""
-    options, optional = _options(hint)
-    if value is None:
-        return optional or current is None
-    return any(_fits(t, value) for t in options)
-
-
-def _convert(hint, value):
-    """YAML's value as the field's type (checked by :func:`_accepts`): a float field given
-    ``3`` gets ``3.0``; a tuple field given a list gets a tuple, a list field a list, their
-    items converted likewise."""
-    if value is None:
-        return None
-    options, _ = _options(hint)
-    t = next(t for t in options if _fits(t, value))
-    origin = typing.get_origin(t) or t
-    if origin is float:
-        return float(value)
-    if origin in (list, tuple):
-        element = _elements(t, value)
-        items = (
-            list(value)
-            if element is None
-            else [_convert(e, v) for e, v in zip(element, value, strict=True)]
-        )
-        return tuple(items) if origin is tuple else items
-    return value
-
-
-def _type_name(hint) -> str:
-    return str(hint).replace("typing.", "").replace("<class '", "").replace("'>", "")
 
 
 @dataclass(frozen=True)
@@ -254,7 +182,6 @@ def _apply(obj, items: list[_Item]):
     are checked together (``refine.band`` against ``refine.particles``) may be given in any
     order; a check that fails names where the settings came from."""
     fields = _fields(obj)
-    hints = typing.get_type_hints(type(obj))
     leaves: dict[str, object] = {}
     nested: dict[str, list[_Item]] = {}
     wheres: list[str] = []  # where each change came from
@@ -279,7 +206,7 @@ def _apply(obj, items: list[_Item]):
                 f"{item.where}: {name} is a group of settings, not one value (got "
                 f"{item.value!r}); set one of {names}"
             )
-        leaves[head] = _leaf(obj, head, hints[head], item)
+        leaves[head] = _leaf(obj, head, item)
         nested.pop(head, None)  # a whole group given later replaces earlier sub-settings
         wheres.append(item.where)
         given.append(item.key)
@@ -298,19 +225,43 @@ def _apply(obj, items: list[_Item]):
         raise ConfigError(f"{where}: {' '.join(str(err).split())} (given: {keys})") from None
 
 
-def _leaf(obj, head: str, hint, item: _Item):
+def _leaf(obj, head: str, item: _Item):
     """``item``'s value for the field ``head`` of ``obj``: checked against the field's
-    declared type and range (:func:`motion.settings.coerce`) in a settings class, against
-    its annotation (:func:`_accepts`) in a plain dataclass."""
+    declared type and range (:func:`motion.settings.coerce`) in a settings class; in a plain
+    dataclass of a lower layer (the ``Connections`` and ``Temporal`` of
+    :class:`~motion.registration.refine.RefineSettings`), a number, flag or text where the
+    field holds one (:func:`_plain_leaf`)."""
+    name = _walked(item) + head
     if isinstance(obj, Settings):
+        if is_opaque(type(obj), head):
+            raise ConfigError(f"{item.where}: {name} is {NOT_SETTABLE}; got {show(item.value)}")
         try:
             return coerce(type(obj), head, item.value, paths=True)
         except SettingError as err:  # "KEY must be ...": the key as the user wrote it
             raise ConfigError(f"{item.where}: {_walked(item)}{err}") from None
-    if not _accepts(hint, getattr(obj, head), item.value):
-        name = _walked(item) + head
-        raise ConfigError(f"{item.where}: {name} must be {_type_name(hint)}; got {item.value!r}")
-    return _convert(hint, item.value)
+    return _plain_leaf(getattr(obj, head), item.value, f"{item.where}: {name}")
+
+
+def _plain_leaf(current, value, what: str):
+    """``value`` for a plain dataclass's field holding ``current``: a number for a number
+    (``3`` -> ``3.0`` for a float), ``true``/``false`` for a flag, text for text, and nothing
+    else (its ``None`` or object stays as it is)."""
+    if isinstance(current, bool):
+        ok, expected = isinstance(value, bool), "true or false"
+    elif isinstance(current, int | float):
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = number and (isinstance(current, float) or isinstance(value, int))
+        expected = "a number" if isinstance(current, float) else "an integer"
+        value = float(value) if ok and isinstance(current, float) else value
+    elif isinstance(current, str):
+        ok, expected = isinstance(value, str), "a string"
+    elif value is current:
+        return value
+    else:
+        raise ConfigError(f"{what} is {NOT_SETTABLE} (it is {current!r}); got {show(value)}")
+    if not ok:
+        raise ConfigError(f"{what} must be {expected}; got {show(value)}")
+    return value
 
 
 def override(obj, key: str, value, where: str = "settings"):
@@ -372,9 +323,7 @@ def settings_dict(cfg: RegisterConfig) -> dict:
     return dataclasses.asdict(cfg)
 
 
-# -- the settings template (motion register --write-config) ----------------------------------
-#: longest meaning taken from a docstring (characters) before it is cut at a clause
-BRIEF_LIMIT = 240
+# -- the settings template (motion register --write-config)
 #: the comment lines' width
 TEMPLATE_WIDTH = 100
 
@@ -387,11 +336,7 @@ TEMPLATE_HEADER = """\
 # a setting only Python code can change. Each group names the class that documents its
 # settings."""
 
-_NAMES = r"[a-z_][a-z0-9_]*(?:,\s*[a-z_][a-z0-9_]*)*"
-_ENTRY = re.compile(rf"^(\s*)({_NAMES}):(?:\s+(.*))?$")
-#: a second entry on the same line as another's: ``particles: K per part. iterations,
-#: restarts: particle BP passes``
-_INNER_ENTRY = re.compile(rf"(?<=\.)\s+({_NAMES}):\s")
+_ENTRY = re.compile(r"^(\s*)([a-z_][a-z0-9_]*):(?:\s+(.*))?$")
 _ROLE = re.compile(r":[a-z]+:`(~?)([^`]+)`")
 _LITERAL = re.compile(r"``([^`]+)``")
 
@@ -412,143 +357,61 @@ def _plain(text: str) -> str:
     return " ".join(_LITERAL.sub(r"\1", text).split())
 
 
-def _names(text: str) -> tuple[str, ...]:
-    return tuple(n.strip() for n in text.split(","))
-
-
-@dataclass(frozen=True)
-class _Doc:
-    """A field's meaning: ``names`` are the fields one docstring entry documents together
-    (the comment is written once above the first of them), ``text`` the comment."""
-
-    names: tuple[str, ...]
-    text: str
-
-
-def _docstring(cls: type) -> tuple[list[_Doc], str]:
-    """The entries of a dataclass's docstring (``name: meaning`` lines under
-    ``Attributes:`` or any heading; ``a, b: meaning`` documents both; an entry's further
-    lines indented deeper), and the rest of its text, all as plain text."""
+def _docstring(cls: type) -> tuple[dict[str, str], str]:
+    """The entries of a plain dataclass's docstring (``name: meaning`` lines, an entry's
+    further lines indented deeper) and the rest of its text, all as plain text."""
     fields = {f.name for f in dataclasses.fields(cls)}
-    raw: list[tuple[tuple[str, ...], list[str]]] = []
+    raw: dict[str, list[str]] = {}
     prose: list[str] = []
-    indent = None  # of the entry being read
+    entry, indent = None, None  # the entry being read and its indentation
     for line in inspect.cleandoc(cls.__doc__ or "").splitlines():
         m = _ENTRY.match(line)
-        if m and set(_names(m[2])) <= fields:
-            raw.append((_names(m[2]), [m[3] or ""]))
-            indent = len(m[1])
-        elif indent is not None and line.strip() and len(line) - len(line.lstrip()) > indent:
-            raw[-1][1].append(line.strip())
+        if m and m[2] in fields:
+            entry, indent = m[2], len(m[1])
+            raw[entry] = [m[3] or ""]
+        elif entry and line.strip() and len(line) - len(line.lstrip()) > indent:
+            raw[entry].append(line.strip())
         else:
-            indent = None
+            entry = None
             prose.append(line)
-    entries: list[_Doc] = []
-    for names, parts in raw:
-        text = _plain(" ".join(parts))
-        while True:  # entries written on the same line as this one
-            inner = next(
-                (m for m in _INNER_ENTRY.finditer(text) if set(_names(m[1])) <= fields), None
-            )
-            if inner is None:
-                break
-            entries.append(_Doc(names, text[: inner.start()].strip()))
-            names, text = _names(inner[1]), text[inner.end() :]
-        entries.append(_Doc(names, text.strip()))
-    return entries, _plain(" ".join(prose))
-
-
-def _depth_zero(text: str, chars: str) -> list[int]:
-    """Positions of ``chars`` outside brackets followed by a space or the end."""
-    depth, out = 0, []
-    for i, ch in enumerate(text):
-        if ch in "([":
-            depth += 1
-        elif ch in ")]":
-            depth = max(depth - 1, 0)
-        elif depth == 0 and ch in chars and text[i + 1 : i + 2] in ("", " "):
-            out.append(i)
-    return out
+    return {k: _plain(" ".join(v)) for k, v in raw.items()}, _plain(" ".join(prose))
 
 
 def _sentences(text: str) -> list[str]:
     """``text`` split after each full stop (outside brackets) that a capital or the end
     follows."""
-    out, start = [], 0
-    for i in _depth_zero(text, "."):
-        if i + 2 >= len(text) or text[i + 2].isupper():
-            out.append(text[start : i + 1].strip())
-            start = i + 1
+    out, start, depth = [], 0, 0
+    for i, ch in enumerate(text):
+        if ch in "([":
+            depth += 1
+        elif ch in ")]":
+            depth = max(depth - 1, 0)
+        elif depth == 0 and ch == "." and text[i + 1 : i + 2] in ("", " "):
+            if i + 2 >= len(text) or text[i + 2].isupper():
+                out.append(text[start : i + 1].strip())
+                start = i + 1
     rest = text[start:].strip()
     return [*out, rest] if rest else out
 
 
-def _brief(text: str, limit: int = BRIEF_LIMIT) -> str:
-    """The first sentence of ``text`` without its full stop; one longer than ``limit`` is
-    cut at its last ``:`` or ``;`` (outside brackets) before it, else at a space, and ends
-    with ``...``."""
-    first = (_sentences(text) or [""])[0]
-    if len(first) <= limit:
-        return first.removesuffix(".")
-    cuts = [i for i in _depth_zero(first, ":;") if i <= limit] or [
-        i for i, ch in enumerate(first[: limit + 1]) if ch == " "
-    ]
-    return (first[: cuts[-1]] if cuts else first[:limit]).rstrip(" ,") + " ..."
-
-
-def _mention(name: str, text: str, limit: int = BRIEF_LIMIT) -> str | None:
-    """The first sentence of ``text`` that names ``name`` (or its clause between ``;``,
-    when the sentence is longer than ``limit``)."""
-    word = re.compile(rf"\b{re.escape(name)}\b")
-    for sentence in _sentences(text):
-        if not word.search(sentence):
-            continue
-        if len(sentence) <= limit:
-            return sentence.removesuffix(".")
-        cuts = [-1, *_depth_zero(sentence, ";"), len(sentence)]
-        for lo, hi in itertools.pairwise(cuts):
-            clause = sentence[lo + 1 : hi].strip()
-            if word.search(clause) and len(clause) <= limit:
-                return clause.removesuffix(".")
-    return None
-
-
-def _mentioned(name: str, entries: list[_Doc], prose: str) -> str:
-    """What the docstring says of a field without an entry of its own: the sentence of
-    another entry that names it (``with OTHER: ...``; ``see OTHER`` where that is too
-    long), else of the docstring's text, else nothing."""
-    word = re.compile(rf"\b{re.escape(name)}\b")
-    for entry in entries:
-        if word.search(entry.text):
-            other = ", ".join(entry.names)
-            found = _mention(name, entry.text)
-            return f"with {other}: {found}" if found else f"see {other}"
-    return _mention(name, prose) or ""
-
-
-def _field_docs(cls: type) -> dict[str, _Doc]:
+def _field_docs(cls: type) -> dict[str, str]:
     """Field name -> its meaning. A settings class's fields carry their own
-    (:func:`motion.settings.setting`); a plain dataclass's come from its docstring: the first
-    sentence of the field's entry, else the sentence of another field's entry (or of the
-    docstring's text) that names it, else nothing."""
+    (:func:`motion.settings.setting`); a plain dataclass's (``Connections``, ``Temporal``)
+    come from its docstring: the first sentence of the field's entry, else the first sentence
+    of its text that names the field, else nothing."""
     if issubclass(cls, Settings):
         return {
-            f.name: _Doc((f.name,), getattr(f.metadata.get("setting"), "doc", ""))
-            for f in dataclasses.fields(cls)
+            f.name: getattr(f.metadata.get("setting"), "doc", "") for f in dataclasses.fields(cls)
         }
     entries, prose = _docstring(cls)
-    own: dict[str, _Doc] = {}
-    for entry in entries:
-        for name in entry.names:
-            own.setdefault(name, entry)
     docs = {}
     for f in dataclasses.fields(cls):
-        if f.name in own:
-            entry = own[f.name]
-            names = f"{', '.join(entry.names)}: " if len(entry.names) > 1 else ""
-            docs[f.name] = _Doc(entry.names, names + _brief(entry.text))
-        else:
-            docs[f.name] = _Doc((f.name,), _mentioned(f.name, entries, prose))
+        if f.name in entries:
+            docs[f.name] = (_sentences(entries[f.name]) or [""])[0].removesuffix(".")
+            continue
+        word = re.compile(rf"\b{re.escape(f.name)}\b")
+        found = (s for s in _sentences(prose) if word.search(s))
+        docs[f.name] = next(found, "").removesuffix(".")
     return docs
 
 
@@ -609,7 +472,6 @@ def _template_lines(obj, default, depth: int, only: tuple[str, ...] | None = Non
     indent = "  " * depth
     docs = _field_docs(type(obj))
     lines: list[str] = []
-    shared: tuple[str, ...] = ()  # the names of the comment just written
     for f in dataclasses.fields(obj):
         if only is not None and f.name not in only:
             continue
@@ -620,17 +482,15 @@ def _template_lines(obj, default, depth: int, only: tuple[str, ...] | None = Non
         if dataclasses.is_dataclass(value):
             inner = _template_lines(value, base if type(base) is type(value) else value, depth + 1)
             settable = any(line.strip() and not line.lstrip().startswith("#") for line in inner)
-            lines += _comment(_group_doc(doc.text, type(value)), indent)
+            lines += _comment(_group_doc(doc, type(value)), indent)
             lines.append(f"{indent}{'' if settable else '# '}{f.name}:")
             lines += inner
-            shared = ()
             continue
-        if not (len(doc.names) > 1 and doc.names == shared):
-            lines += _comment(doc.text, indent)
-        shared = doc.names
-        text = _yaml_value(value)
+        lines += _comment(doc, indent)
+        opaque = isinstance(obj, Settings) and is_opaque(type(obj), f.name)
+        text = None if opaque else _yaml_value(value)
         if text is None:
-            lines.append(f"{indent}# {f.name}: {value!r} (not settable in a file)")
+            lines.append(f"{indent}# {f.name}: {value!r} {NOT_SETTABLE}")
             continue
         line = f"{indent}{f.name}: {text}"
         if repr(value) != repr(base):

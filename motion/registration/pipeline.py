@@ -22,8 +22,9 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -51,28 +52,37 @@ from motion.registration.types import (
     scaled_spec,
 )
 from motion.render import project_parts
+from motion.settings import SettingError, Settings, setting
 
-__all__ = ["RegistrationSettings", "register", "silhouette_iou"]
+__all__ = ["RegistrationSettings", "RegistrationSettingsError", "register", "silhouette_iou"]
+
+
+class RegistrationSettingsError(SettingError, RegistrationError):
+    """A pipeline setting outside its type or range (a :class:`RegistrationError` too)."""
 
 
 @dataclass(frozen=True)
-class RegistrationSettings:
-    """Settings of the whole pipeline (each stage's constants live in its own settings).
+class RegistrationSettings(Settings):
+    """Settings of the whole pipeline (each stage's constants live in its own settings; every
+    field checked at construction)."""
 
-    Attributes:
-        stage1: approximate registration (:class:`Stage1Settings`).
-        refine: stages 2-3 (:class:`RefineSettings`).
-        polish: the posture polish after them (:class:`PosturePolishSettings`; ``steps=0``
-            leaves BP's posture as it is).
-        scale: the body scale G if known (``None``: estimated in stage 0).
-        seed: seed of every random draw.
-    """
+    setting_error: ClassVar[type[SettingError]] = RegistrationSettingsError
 
-    stage1: Stage1Settings = field(default_factory=Stage1Settings)
-    refine: RefineSettings = field(default_factory=RefineSettings)
-    polish: PosturePolishSettings = field(default_factory=PosturePolishSettings)
-    scale: float | None = None
-    seed: int = 0
+    stage1: Stage1Settings = setting(
+        default_factory=Stage1Settings, doc="approximate registration (Stage1Settings)"
+    )
+    refine: RefineSettings = setting(
+        default_factory=RefineSettings, doc="stages 2-3 (RefineSettings)"
+    )
+    polish: PosturePolishSettings = setting(
+        default_factory=PosturePolishSettings,
+        doc="the posture polish after them (PosturePolishSettings; steps=0 leaves BP's posture "
+        "as it is)",
+    )
+    scale: float | None = setting(
+        None, "the body scale G if known (none: estimated in stage 0)", gt=0
+    )
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
 
 
 def silhouette_iou(

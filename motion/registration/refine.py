@@ -33,6 +33,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_quaternion
@@ -60,6 +61,7 @@ from motion.registration.types import (
     scaled_spec,
 )
 from motion.render import project_parts
+from motion.settings import SettingError, Settings, setting
 from motion.smoothing import smooth_rotations, smooth_values
 from pgm import (
     SE3,
@@ -78,6 +80,7 @@ from pgm.rotations import qconj, qmul, qrotate
 __all__ = [
     "RefineResult",
     "RefineSettings",
+    "RefineSettingsError",
     "colour_image",
     "estimate_part_colours",
     "part_keypoints",
@@ -89,156 +92,197 @@ __all__ = [
 Progress = Callable[[Iterable, str, int], Iterator]
 
 
-@dataclass(frozen=True)
-class RefineSettings:
-    """Every tuning constant of stages 2 and 3, in one place.
+class RefineSettingsError(SettingError, RegistrationError):
+    """A stage 2-3 setting outside its type or range, or settings that do not fit together
+    (a :class:`RegistrationError` too)."""
 
-    Attributes:
-        particles: K per part. iterations, restarts: particle BP passes (the proposal runs
-            6 iterations twice).
-        window, overlap: video frames per window and shared between neighbours.
-        prior_pos_std, prior_rot_std: the articulation prior's spreads (metres, radians);
-            broad, so that the images decide the articulation where they can.
-        connection: the kinematic edges' position spread and schedules (see
-            :class:`Connections`; its ``rot_std`` and ``rel_rot`` are replaced by the
-            articulation prior's).
-        articulation_std: radians, the spread of each joint's rotation about the
-            reference's at C(t') (the articulation prior ``E_A`` on the kinematic edges),
-            the core of the heavy-tailed prior below.
-        articulation_outlier, articulation_outlier_std: a heavy-tailed ``E_A``: each
-            joint's rotation kernel is the mixture ``(1 - w) k(articulation_std) + w
-            k(articulation_outlier_std)`` (:class:`pgm.RigidConnection`'s ``outlier``), and
-            the posture fit pulls each joint by its share of that mixture
-            (:func:`_fit_weights`). A student differs from the reference in a few joints by
-            a lot more often than in every joint a little: under a Gaussian ``E_A`` (0.2
-            rad, ``articulation_outlier=0``) the joints the student moves as the reference
-            carried ~3 degrees of noise each, and C shifted to spread the differences of
-            the two that he moves differently. Synthetic walk, two cameras, seed 0: A 4.4 ->
-            2.8 degrees, C 1.85 -> 1.75; one camera A 4.6 -> 3.0 (docs/experiments.md).
-        twist_from_reference: fit each part's rotation to its axis and its children's
-            joints, the rest (a limb's twist) from the reference
-            (:func:`motion.body.fit.fit_part_rotations`); ``False``: BP's rotations as
-            they are.
-        landmark_std: metres, how far BP's part ends typically land from the truth (what
-            the posture fit weighs them by against the articulation prior).
-        whole_body_t: T's rotation from the whole body (the reference posture at C fitted
-            rigidly to every estimated landmark), not from the root part alone (a pelvis
-            is too small to orient well); needs ``twist_from_reference``.
-        temporal: temporal edges (``None``: frames independent).
-        silhouette, edges, intensity, joints: cue weights (nats per pixel, or per joint
-            for the 2-D joints); 0 leaves a cue out.
-        joints_sigma: pixels, the 2-D joints cue's Cauchy scale.
-        kernel_scale, kernel_end: the proposal kernels' spreads (metres, radians) and their
-            final multiplier (annealed geometrically).
-        refine_c: run stage 3 (C through the chain) after stage 2.
-        rounds: at most this many stage 3 rounds (each one particle BP run per window).
-        band: half-width of C's band, reference frames.
-        couple_pos_std, couple_rot_std: the coupling's spreads (as the prior's).
-        max_step_factor: C's largest step is this times the frame-rate ratio.
-        reanchor: place the next round's reference postures by the T fitted to this
-            round's estimate (``False``: by the start T throughout; on the synthetic walk,
-            one camera, that left stage 1's T errors in place: T 22 vs 9 degrees, C 9.4 vs
-            4.4 frames).
-        slope_weight: nats of C's slope prior, ``w ((s - ratio) / ratio)^2`` for a step of
-            ``s`` reference frames (:func:`motion.alignment.slope_step_cost`).
-        tempo_std: after the stage 3 rounds, C is chosen once more over the whole video,
-            jointly with the student's tempo, by exact dynamic programming
-            (:func:`motion.alignment.tempo_align`): each reference frame in a band of
-            ``tempo_band`` either side of stage 3's C is scored by the coupling's
-            log-potential (:class:`pgm.LookupPose`, spreads ``couple_*``) of BP's part
-            estimates against the reference posture there, each part weighted by how much
-            of it the cameras see (:func:`_in_view`: a part out of view is estimated from
-            the priors, i.e. from the last round's C); the prior is the slope prior on the
-            tempo and a random walk of the tempo of ``tempo_std`` (relative) per
-            square-root second (0.3: about 30 % in a second). Stage 3's chain inside BP is
-            first order, so each frame's step is chosen on its own: where the images hardly
-            tell frames apart C wanders (a few frames either way through a walk) and at
-            the ends it stalls. Synthetic walk, one camera, seeds 0 / 1: C 3.74 / 3.40 ->
-            2.32 / 2.86 reference frames (docs/experiments.md). 0 switches it off.
-        tempo_band: half-width of that band, reference frames.
-        smooth_s: seconds, the standard deviation of a Gaussian in time by which the final
-            articulation A (each joint's rotation relative to the reference's at C), T's
-            rotation (relative to the reference root's at C, so the reference's own pelvis
-            swing is kept) and T's translation are smoothed (:mod:`motion.smoothing`); 0
-            leaves each frame's particle BP estimate as it is. Each window and frame is
-            solved with a finite set of particles, so its posture carries a few degrees of
-            sampling noise from frame to frame that the student's movement does not have;
-            0.1 s keeps changes slower than about 2 Hz (the kernel's -3 dB point is
-            ``0.19 / smooth_s`` Hz) -- the reference carries the movement's fast part. On the
-            synthetic walk (seed 0) it took A from 8.0 to 4.9 degrees with one camera, 7.4
-            to 4.8 with two, T 10.2 to 7.2 / 4.8 to 3.6 degrees.
+
+def _default_connection() -> Connections:
+    return Connections(0.02, 1.0, Geometric(1.0, 0.25, 5))
+
+
+@dataclass(frozen=True)
+class RefineSettings(Settings):
+    """Every tuning constant of stages 2 and 3, in one place (each field with its range and
+    meaning, :func:`motion.settings.setting`; checked when built, a bad value raising
+    :class:`RefineSettingsError`).
+
+    Measured effects (docs/experiments.md): the heavy-tailed articulation prior
+    (``articulation_outlier``), against a Gaussian one (0.2 rad, ``articulation_outlier=0``),
+    on the synthetic walk, two cameras, seed 0: A 4.4 -> 2.8 degrees, C 1.85 -> 1.75; one
+    camera A 4.6 -> 3.0. ``reanchor=False`` (by the start T throughout), synthetic walk, one
+    camera: T 22 vs 9 degrees, C 9.4 vs 4.4 frames. The tempo alignment (``tempo_std``),
+    synthetic walk, one camera, seeds 0 / 1: C 3.74 / 3.40 -> 2.32 / 2.86 reference frames.
+    The smoothing (``smooth_s``), synthetic walk, seed 0: A from 8.0 to 4.9 degrees with one
+    camera, 7.4 to 4.8 with two, T 10.2 to 7.2 / 4.8 to 3.6 degrees.
+
+    Checked together: ``overlap < window``; ``articulation_outlier_std >
+    articulation_std`` where ``articulation_outlier`` is not 0; with ``refine_c``, C's band
+    of ``2 * band + 1`` states fits in the ``particles``.
     """
 
-    particles: int = 100
-    iterations: int = 5
-    restarts: int = 2
-    window: int = 24
-    overlap: int = 4
-    prior_pos_std: float = 0.08
-    prior_rot_std: float = 0.5
-    connection: Connections = field(
-        default_factory=lambda: Connections(0.02, 1.0, Geometric(1.0, 0.25, 5))
-    )
-    articulation_std: float = 0.05
-    articulation_outlier: float = 0.1
-    articulation_outlier_std: float = 0.5
-    twist_from_reference: bool = True
-    landmark_std: float = 0.03
-    whole_body_t: bool = True
-    temporal: Temporal | None = field(default_factory=Temporal)
-    silhouette: float = 1.0
-    edges: float = 0.2
-    intensity: float = 0.05
-    joints: float = 1.0
-    joints_sigma: float = 4.0
-    kernel_scale: tuple[float, float] = (0.02, 0.5)
-    kernel_end: float = 0.05
-    refine_c: bool = True
-    rounds: int = 3
-    band: int = 12
-    couple_pos_std: float = 0.04
-    couple_rot_std: float = 0.25
-    max_step_factor: float = 2.5
-    reanchor: bool = True
-    slope_weight: float = 1.0
-    tempo_std: float = 0.3
-    tempo_band: int = 24
-    smooth_s: float = 0.1
+    setting_error: ClassVar[type[SettingError]] = RefineSettingsError
 
-    def __post_init__(self):
-        if not (self.tempo_std >= 0 and math.isfinite(self.tempo_std)) or self.tempo_band < 0:
-            raise RegistrationError(
-                f"tempo_std must be a finite number >= 0 and tempo_band >= 0; got "
-                f"{self.tempo_std}, {self.tempo_band}"
-            )
-        if not (self.smooth_s >= 0 and math.isfinite(self.smooth_s)):
-            raise RegistrationError(
-                f"smooth_s must be a finite number of seconds >= 0; got {self.smooth_s}"
-            )
-        if self.particles < 2 or self.iterations < 1 or self.restarts < 1:
-            raise RegistrationError(
-                f"particles >= 2, iterations >= 1, restarts >= 1 expected; got "
-                f"{self.particles}, {self.iterations}, {self.restarts}"
-            )
-        if not 0 <= self.overlap < self.window:
-            raise RegistrationError(
-                f"overlap must be in [0, window); got overlap={self.overlap}, window={self.window}"
-            )
-        if not 0 <= self.articulation_outlier < 1:
-            raise RegistrationError(
-                f"articulation_outlier must be a weight in [0, 1); got {self.articulation_outlier}"
+    particles: int = setting(100, "K, particles per part", ge=2)
+    iterations: int = setting(5, "particle BP passes (the proposal runs 6 iterations twice)", ge=1)
+    restarts: int = setting(2, "particle BP restarts (with iterations: its passes)", ge=1)
+    window: int = setting(24, "video frames per window", ge=1)
+    overlap: int = setting(4, "video frames shared between neighbouring windows", ge=0)
+    prior_pos_std: float = setting(
+        0.08,
+        "metres, the articulation prior's position spread; broad, so that the images decide "
+        "the articulation where they can",
+        gt=0,
+    )
+    prior_rot_std: float = setting(
+        0.5, "radians, the articulation prior's rotation spread (broad, as prior_pos_std)", gt=0
+    )
+    connection: Connections = setting(
+        default_factory=_default_connection,
+        doc="the kinematic edges' position spread and schedules (see Connections; its rot_std "
+        "and rel_rot are replaced by the articulation prior's)",
+        opaque=True,
+    )
+    articulation_std: float = setting(
+        0.05,
+        "radians, the spread of each joint's rotation about the reference's at C(t') (the "
+        "articulation prior E_A on the kinematic edges), the core of the heavy-tailed prior",
+        gt=0,
+    )
+    articulation_outlier: float = setting(
+        0.1,
+        "a heavy-tailed E_A: each joint's rotation kernel is the mixture (1 - w) "
+        "k(articulation_std) + w k(articulation_outlier_std) (pgm.RigidConnection's outlier), "
+        "and the posture fit pulls each joint by its share of that mixture; a student differs "
+        "from the reference in a few joints by a lot more often than in every joint a little "
+        "(0: a Gaussian E_A)",
+        ge=0,
+        lt=1,
+    )
+    articulation_outlier_std: float = setting(
+        0.5,
+        "radians, the spread of the heavy-tailed E_A's outlier kernel (must exceed "
+        "articulation_std)",
+        gt=0,
+    )
+    twist_from_reference: bool = setting(
+        True,
+        "fit each part's rotation to its axis and its children's joints, the rest (a limb's "
+        "twist) from the reference (motion.body.fit.fit_part_rotations); false: BP's "
+        "rotations as they are",
+    )
+    landmark_std: float = setting(
+        0.03,
+        "metres, how far BP's part ends typically land from the truth (what the posture fit "
+        "weighs them by against the articulation prior)",
+        gt=0,
+    )
+    whole_body_t: bool = setting(
+        True,
+        "T's rotation from the whole body (the reference posture at C fitted rigidly to every "
+        "estimated landmark), not from the root part alone (a pelvis is too small to orient "
+        "well); needs twist_from_reference",
+    )
+    temporal: Temporal | None = setting(
+        default_factory=Temporal,
+        doc="temporal edges (none: frames independent)",
+        opaque=True,
+    )
+    silhouette: float = setting(
+        1.0, "weight of the silhouette cue, nats per pixel (0 leaves it out)", ge=0
+    )
+    edges: float = setting(0.2, "weight of the edges cue, nats per pixel (0 leaves it out)", ge=0)
+    intensity: float = setting(
+        0.05, "weight of the intensity cue, nats per pixel (0 leaves it out)", ge=0
+    )
+    joints: float = setting(
+        1.0, "weight of the 2-D joints cue, nats per joint (0 leaves it out)", ge=0
+    )
+    joints_sigma: float = setting(4.0, "pixels, the 2-D joints cue's Cauchy scale", gt=0)
+    kernel_scale: tuple[float, float] = setting(
+        (0.02, 0.5), "the proposal kernels' spreads (metres, radians)", gt=0
+    )
+    kernel_end: float = setting(
+        0.05, "the proposal kernels' final multiplier (annealed geometrically)", gt=0
+    )
+    refine_c: bool = setting(True, "run stage 3 (C through the chain) after stage 2")
+    rounds: int = setting(
+        3, "at most this many stage 3 rounds (each one particle BP run per window)", ge=0
+    )
+    band: int = setting(12, "half-width of C's band, reference frames", ge=0)
+    couple_pos_std: float = setting(
+        0.04, "metres, the coupling's position spread (as the prior's)", gt=0
+    )
+    couple_rot_std: float = setting(
+        0.25, "radians, the coupling's rotation spread (as the prior's)", gt=0
+    )
+    max_step_factor: float = setting(
+        2.5, "C's largest step is this times the frame-rate ratio", gt=0
+    )
+    reanchor: bool = setting(
+        True,
+        "place the next round's reference postures by the T fitted to this round's estimate "
+        "(false: by the start T throughout, which leaves stage 1's T errors in place)",
+    )
+    slope_weight: float = setting(
+        1.0,
+        "nats of C's slope prior, w ((s - ratio) / ratio)^2 for a step of s reference frames "
+        "(motion.alignment.slope_step_cost)",
+        ge=0,
+    )
+    tempo_std: float = setting(
+        0.3,
+        "after the stage 3 rounds, C is chosen once more over the whole video, jointly with "
+        "the student's tempo, by exact dynamic programming (motion.alignment.tempo_align): "
+        "each reference frame in a band of tempo_band either side of stage 3's C is scored by "
+        "the coupling's log-potential (pgm.LookupPose, spreads couple_*) of BP's part "
+        "estimates against the reference posture there, each part weighted by how much of it "
+        "the cameras see (a part out of view is estimated from the priors, i.e. from the last "
+        "round's C); the prior is the slope prior on the tempo and a random walk of the tempo "
+        "of tempo_std (relative) per square-root second (0.3: about 30 % in a second). Stage "
+        "3's chain inside BP is first order, so each frame's step is chosen on its own: where "
+        "the images hardly tell frames apart C wanders (a few frames either way through a "
+        "walk) and at the ends it stalls. 0 switches it off",
+        ge=0,
+    )
+    tempo_band: int = setting(
+        24, "half-width of the tempo alignment's band (tempo_std), reference frames", ge=0
+    )
+    smooth_s: float = setting(
+        0.1,
+        "seconds, the standard deviation of a Gaussian in time by which the final "
+        "articulation A (each joint's rotation relative to the reference's at C), T's "
+        "rotation (relative to the reference root's at C, so the reference's own pelvis swing "
+        "is kept) and T's translation are smoothed (motion.smoothing); 0 leaves each frame's "
+        "particle BP estimate as it is. Each window and frame is solved with a finite set of "
+        "particles, so its posture carries a few degrees of sampling noise from frame to frame "
+        "that the student's movement does not have; 0.1 s keeps changes slower than about 2 Hz "
+        "(the kernel's -3 dB point is 0.19 / smooth_s Hz) -- the reference carries the "
+        "movement's fast part",
+        ge=0,
+    )
+
+    def validate(self) -> None:
+        """Check (and normalise) every field, then the checks across fields (see the class
+        docstring)."""
+        super().validate()
+        name = type(self).__name__
+        if not self.overlap < self.window:
+            raise RefineSettingsError(
+                f"{name}: overlap must be in [0, window); got overlap={self.overlap}, "
+                f"window={self.window}"
             )
         if self.articulation_outlier and not (
             self.articulation_outlier_std > self.articulation_std
         ):
-            raise RegistrationError(
-                "articulation_outlier_std must exceed articulation_std; got "
+            raise RefineSettingsError(
+                f"{name}: articulation_outlier_std must exceed articulation_std; got "
                 f"{self.articulation_outlier_std} <= {self.articulation_std}"
             )
         if self.refine_c and 2 * self.band + 1 > self.particles:
-            raise RegistrationError(
-                f"C's band of 2 * {self.band} + 1 states must fit in the {self.particles} "
-                "particles (a discrete node's states share the particle axis)"
+            raise RefineSettingsError(
+                f"{name}: C's band of 2 * {self.band} + 1 states must fit in the "
+                f"{self.particles} particles (a discrete node's states share the particle axis)"
             )
 
 

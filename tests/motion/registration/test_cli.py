@@ -94,10 +94,11 @@ def test_template_names_every_setting_with_its_meaning(tmp_path, capsys):
     assert {"seed", "scale", "refine.particles", "stage1.yaw_starts"} <= set(loaded)
 
 
-def _comments_above(text: str, key_line: str) -> str:
-    """The comment lines right above ``key_line``, joined as one text."""
+def _comments_above(text: str, key_line: str, after: str | None = None) -> str:
+    """The comment lines right above ``key_line`` (the first after the line ``after``),
+    joined as one text."""
     lines = text.splitlines()
-    i = lines.index(key_line)
+    i = lines.index(key_line, lines.index(after) if after else 0)
     above = []
     while i > 0 and lines[i - 1].lstrip().startswith("# "):
         i -= 1
@@ -114,22 +115,27 @@ def test_each_meaning_is_the_settings_own_or_its_docstring_entry():
         "video": cfg.video,
         "perception": cfg.perception,
         "stage1": cfg.registration.stage1,
+        "refine": cfg.registration.refine,
+        "polish": cfg.registration.polish,
         "movement": cfg.movement,
         "findings": cfg.findings,
     }
     for prefix, group in groups.items():
         assert isinstance(group, Settings)
         for f in dataclasses.fields(group):
+            if dataclasses.is_dataclass(getattr(group, f.name)):
+                continue  # a group (below)
             doc = " ".join(f.metadata["setting"].doc.split())
-            assert _comments_above(text, named[f"{prefix}.{f.name}"]) == doc, f.name
-    # plain dataclasses: the first sentence of the docstring's entry; entries naming several
-    # fields are written once, above the first; two entries on one line are told apart
-    assert _comments_above(text, named["refine.particles"]) == "K per part"
-    assert _comments_above(text, named["refine.iterations"]).startswith(
-        "iterations, restarts: particle BP passes"
-    )
-    assert _comments_above(text, named["refine.restarts"]) == ""
+            line = named[f"{prefix}.{f.name}"]
+            assert _comments_above(text, line, after=f"{prefix}:") == doc, f.name
+    assert isinstance(cfg.registration, Settings)
     assert _comments_above(text, named["seed"]) == "seed of every random draw"
+    # the plain dataclasses inside refine (motion.body.graph's Connections, Temporal): the
+    # first sentence of the docstring's entry, else of its text naming the field
+    assert _comments_above(text, named["refine.connection.pos_std"]) == (
+        "metres, the joints' spread before annealing"
+    )
+    assert "a Gaussian of pos_std metres" in _comments_above(text, named["refine.temporal.pos_std"])
     # a group names the class that documents it
     assert "motion.registration.refine.RefineSettings" in _comments_above(text, "refine:")
 

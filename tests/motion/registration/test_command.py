@@ -507,7 +507,7 @@ BAD = {
     "setting of the wrong type": (
         lambda s, b: {"extra": ("refine.particles=abc",)},
         "command line",
-        "refine.particles must be int; got 'abc'",
+        "refine.particles must be an integer >= 2; got 'abc'",
         False,
     ),
     "settings that do not fit together": (
@@ -685,9 +685,9 @@ def test_float_field_given_an_int_and_tuple_given_a_list():
         load_config(None, ["stage1.reference_up=[0, 1]"])
     with pytest.raises(ConfigError, match=r"video.person\[1\] must be a number; got 'x'"):
         load_config(None, ["video.person=[10, x]"])
-    with pytest.raises(ConfigError, match=r"refine.particles must be int; got 2.5"):
+    with pytest.raises(ConfigError, match=r"refine.particles must be an integer >= 2; got 2.5"):
         load_config(None, ["refine.particles=2.5"])
-    with pytest.raises(ConfigError, match=r"refine.particles must be int; got True"):
+    with pytest.raises(ConfigError, match=r"refine.particles must be an integer >= 2; got true"):
         load_config(None, ["refine.particles=true"])
 
 
@@ -697,9 +697,9 @@ def test_none_where_allowed_and_only_there():
     )
     assert cfg.video.width is None and cfg.video.count == 10 and cfg.registration.scale is None
     assert load_config(None, ["scale=1.1", "scale=none"]).registration.scale is None
-    with pytest.raises(ConfigError, match=r"refine.particles must be int; got None"):
+    with pytest.raises(ConfigError, match=r"refine.particles must be an integer >= 2; got nothing"):
         load_config(None, ["refine.particles=none"])
-    with pytest.raises(ConfigError, match=r"refine.particles must be int; got None"):
+    with pytest.raises(ConfigError, match=r"refine.particles must be an integer >= 2; got nothing"):
         load_config(None, ["refine.particles="])
 
 

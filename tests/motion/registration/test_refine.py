@@ -317,9 +317,7 @@ def test_bad_inputs_are_refused(student):
         RefineSettings(particles=10, band=12)
     with pytest.raises(RegistrationError, match="overlap"):
         RefineSettings(window=4, overlap=4)
-    with pytest.raises(
-        RegistrationError, match=r"articulation_outlier must be a weight in \[0, 1\)"
-    ):
+    with pytest.raises(RegistrationError, match=r"articulation_outlier must be in \[0, 1\)"):
         RefineSettings(articulation_outlier=1.0)
     with pytest.raises(RegistrationError, match="articulation_outlier_std must exceed"):
         RefineSettings(articulation_outlier=0.1, articulation_outlier_std=0.05)
