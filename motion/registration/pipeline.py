@@ -241,7 +241,7 @@ def register(
     c = refined.C
     t0 = time.perf_counter()
     polished = polish_posture(
-        reference, video, c, refined.rotations, refined.translation, scale, s.polish
+        reference, video, c, refined.rotations, refined.translation, scale, s.polish, progress
     )
     rotations, translation = polished.rotations.to(refined.rotations), polished.translation
     translation = translation.to(refined.translation)

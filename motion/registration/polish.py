@@ -31,6 +31,7 @@ Conventions: metres, radians, pixels; column vectors, right-handed world (DESIGN
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -291,6 +292,7 @@ def polish_posture(
     translation: Tensor,
     scale: float,
     settings: PosturePolishSettings | None = None,
+    progress: Callable[[Iterable, str, int], Iterator] | None = None,
 ) -> PolishResult:
     """Polish a registered posture against the video (see the module's docstring).
 
@@ -303,6 +305,8 @@ def polish_posture(
         translation: ``(T', 3)`` metres, the root's position.
         scale: the body scale G.
         settings: :class:`PosturePolishSettings`.
+        progress: ``progress(items, description, total)`` wrapping the loop over chunks of
+            frames (e.g. a tqdm bar); ``None``: silent.
 
     Returns:
         :class:`PolishResult`.
@@ -328,7 +332,9 @@ def polish_posture(
     out_rot, out_trans = start.rotations.clone(), start.translation.clone()
     before = after = 0.0
     anchor = None
-    for first in range(0, t, s.frames_per_chunk):
+    firsts = range(0, t, s.frames_per_chunk)
+    wrap = progress or (lambda items, description, total: items)
+    for first in wrap(firsts, "polish (T, A)", len(firsts)):
         chunk = slice(first, min(t, first + s.frames_per_chunk))
         outside, samples, sample_mask, view = _silhouette_targets(
             obs.silhouette[0, chunk].float(), s.silhouette_samples, generator

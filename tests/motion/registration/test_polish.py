@@ -201,3 +201,23 @@ def test_map_reads_are_bilinear():
     )
     expected = torch.stack([m[0, 0], m[2, 3], by_hand, m[1, 0]])  # outside: the border
     torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-5)
+
+
+def test_progress_wraps_the_chunks(scene):
+    seen = []
+
+    def progress(items, description, total):
+        seen.append((description, total))
+        return items
+
+    polish_posture(
+        scene.reference,
+        scene.video,
+        scene.C,
+        scene.rotations,
+        scene.translation,
+        1.0,
+        PosturePolishSettings(steps=1, frames_per_chunk=4),
+        progress,
+    )
+    assert seen == [("polish (T, A)", 2)]
