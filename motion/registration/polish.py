@@ -324,10 +324,14 @@ def polish_posture(
     spec = scaled_spec(reference.spec, scale)
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     obs = video.observation
-    keypoint_joints = None
+    keypoint_joints, columns = None, None
     if obs.keypoints is not None and video.keypoint_joints is not None:
+        # the columns naming a joint of this skeleton (others, if any, are not its joints)
         names = reference.skeleton.names
-        keypoint_joints = torch.tensor([names.index(name) for name in video.keypoint_joints])
+        pairs = [(i, names.index(n)) for i, n in enumerate(video.keypoint_joints) if n in names]
+        if pairs:
+            columns = torch.tensor([i for i, _ in pairs])
+            keypoint_joints = torch.tensor([j for _, j in pairs])
     generator = torch.Generator().manual_seed(s.seed)
     out_rot, out_trans = start.rotations.clone(), start.translation.clone()
     before = after = 0.0
@@ -339,7 +343,9 @@ def polish_posture(
         outside, samples, sample_mask, view = _silhouette_targets(
             obs.silhouette[0, chunk].float(), s.silhouette_samples, generator
         )
-        keypoints = None if obs.keypoints is None else obs.keypoints[0, chunk].double()
+        keypoints = None
+        if columns is not None:
+            keypoints = obs.keypoints[0, chunk][:, :, columns].double()
         targets = _Targets(outside, samples, sample_mask, view, keypoints)
         posture = _Posture(reference, scale, out_rot[chunk], driven)
         ref_rot = reference.rotations[c[chunk]][:, driven].double()

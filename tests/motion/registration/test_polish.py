@@ -221,3 +221,22 @@ def test_progress_wraps_the_chunks(scene):
         progress,
     )
     assert seen == [("polish (T, A)", 2)]
+
+
+def test_keypoint_columns_that_name_no_joint_of_the_skeleton_are_left_out(scene):
+    """A keypoint column named after no joint of the reference's skeleton (another body
+    model's landmark) is ignored, not an error: the result equals that without it."""
+    obs = scene.video.observation
+    extra = torch.cat([obs.keypoints, obs.keypoints[..., :1, :]], dim=-2)
+    video = dataclasses.replace(
+        scene.video,
+        observation=dataclasses.replace(obs, keypoints=extra),
+        keypoint_joints=[*scene.video.keypoint_joints, "nose_tip"],
+    )
+    rotations, translation = _perturbed(scene, 8.0, 0.02)
+    settings = PosturePolishSettings(steps=5, silhouette=0.0)
+    plain = polish_posture(
+        scene.reference, scene.video, scene.C, rotations, translation, 1.0, settings
+    )
+    more = polish_posture(scene.reference, video, scene.C, rotations, translation, 1.0, settings)
+    torch.testing.assert_close(more.rotations, plain.rotations)
