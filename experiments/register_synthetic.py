@@ -65,6 +65,7 @@ from motion.registration.approximate import Stage1Settings
 from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import check_movement
+from motion.registration.polish import PosturePolishSettings
 from motion.registration.refine import RefineSettings
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
@@ -108,6 +109,11 @@ class RegisterSyntheticConfig(ExperimentConfig):
     refine_c: bool = setting(True, "stage 3: refine C through the body graph")
     scale: float = setting(0.0, "the body scale G if known (0: estimated)", ge=0)
     seed: int = setting(0, "seed of the registration's draws", ge=0)
+    polish_steps: int = setting(
+        50,
+        "steps of the posture polish after stages 2-3 (motion register's default; 0: none)",
+        ge=0,
+    )
     out_dir: str = setting("runs/register_synthetic", "output folder")
     tiny: bool = setting(False, "a quick run (8 frames, 30 particles, 2 iterations)")
 
@@ -296,7 +302,13 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         # 2 cameras unchanged (C 1.4, A 4.4).
         band=min(24, (cfg.particles - 1) // 2),
     )
-    return RegistrationSettings(Stage1Settings(), refine, scale=cfg.scale or None, seed=cfg.seed)
+    return RegistrationSettings(
+        Stage1Settings(),
+        refine,
+        PosturePolishSettings(steps=cfg.polish_steps),
+        scale=cfg.scale or None,
+        seed=cfg.seed,
+    )
 
 
 def run(cfg: RegisterSyntheticConfig):
