@@ -42,6 +42,7 @@ from motion.body.spec import BodySpec
 from motion.cameras import CameraRig
 from motion.features import distance_to_edges
 from motion.geometry import rotation_vector_to_matrix
+from motion.kinematics import FKResult
 from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
 from motion.render import capsule_sdf, project_parts
 from motion.settings import SettingError, Settings, setting
@@ -87,8 +88,8 @@ class PosturePolishSettings(Settings):
     keypoint_px: float = setting(4.0, "pixels, the 2-D joints' Cauchy scale", gt=0)
     articulation_deg: float = setting(
         20.0,
-        "degrees, the spread of each joint's rotation about the reference's at C (the "
-        "articulation prior)",
+        "degrees, s of the articulation prior 2 (1 - cos a) / s^2 on each joint's rotation a "
+        "about the reference's at C (near 0 a Gaussian of spread s / sqrt(2))",
         gt=0,
         le=180,
     )
@@ -210,16 +211,26 @@ class _Posture:
         top = rotation_vector_to_matrix(root) @ self.start[:, 0]
         return torch.cat([top[:, None], local[:, 1:]], 1)
 
-    def world_joints(self, rotations: Tensor, translation: Tensor) -> Tensor:
-        """``(n, J, 3)`` metres: every joint in the world."""
-        fk = self.reference.posture_frames(rotations, self.scale)
+    def frames(self, rotations: Tensor) -> FKResult:
+        """The posture's forward kinematics in the root's frame (scaled by G)."""
+        return self.reference.posture_frames(rotations, self.scale)
+
+    def world_joints(
+        self, rotations: Tensor, translation: Tensor, fk: FKResult | None = None
+    ) -> Tensor:
+        """``(n, J, 3)`` metres: every joint in the world (``fk``: :meth:`frames` of
+        ``rotations``, when already computed)."""
+        fk = self.frames(rotations) if fk is None else fk
         rotated = (rotations[:, None, 0] @ fk.positions[..., None]).squeeze(-1)
         return rotated + translation[:, None]
 
-    def segments(self, spec: BodySpec, rotations: Tensor, translation: Tensor) -> Tensor:
-        """``(n, P, 2, 3)`` metres: every capsule's axis in the world."""
+    def segments(
+        self, spec: BodySpec, rotations: Tensor, translation: Tensor, fk: FKResult | None = None
+    ) -> Tensor:
+        """``(n, P, 2, 3)`` metres: every capsule's axis in the world (``fk`` as in
+        :meth:`world_joints`)."""
         ref = self.reference
-        fk = ref.posture_frames(rotations, self.scale)
+        fk = self.frames(rotations) if fk is None else fk
         poses = spec.poses(ref.model, ref.skeleton, fk)
         ends = spec.landmarks(poses)  # (n, P, 2, 3) in the root's frame, scaled
         root = rotations[:, 0][:, None, None]
@@ -244,12 +255,13 @@ def _losses(
     """Each term of the polish's loss (nats) at corrections ``joints`` ``(n, J, 3)``,
     ``root`` ``(n, 3)``, ``shift`` ``(n, 3)`` metres."""
     rotations = posture.rotations(joints, root)
+    fk = posture.frames(rotations)  # once per step, for the silhouettes and the joints
     moved = translation + shift
     terms: dict[str, Tensor] = {}
     if s.silhouette > 0:
         # float32 from here: the signed distances of every sampled pixel to every capsule
         # are the polish's bulk (float64 took twice as long for the same result)
-        segments = posture.segments(spec, rotations, moved).float()
+        segments = posture.segments(spec, rotations, moved, fk).float()
         parts = project_parts(rig, segments, spec.shapes.radii.to(segments))
         # the body's outline, outside the silhouette
         outline = capsule_outline(parts.ends, parts.radii, s.outline_points)  # (n,C,P,S,2)
@@ -262,7 +274,7 @@ def _losses(
         per_view = (out + cover) / (2 * s.silhouette_px**2)
         terms["silhouette"] = s.silhouette * (per_view * targets.view).sum().double()
     if s.keypoints > 0 and targets.keypoints is not None and keypoint_joints is not None:
-        world = posture.world_joints(rotations, moved)[:, keypoint_joints]  # (n, K, 3)
+        world = posture.world_joints(rotations, moved, fk)[:, keypoint_joints]  # (n, K, 3)
         uv, depth = rig.project(world)  # (n, C, K, 2), (n, C, K)
         kp = targets.keypoints.to(uv)
         confidence = torch.where(depth > 0, kp[..., 2], torch.zeros_like(kp[..., 2]))
@@ -270,7 +282,8 @@ def _losses(
         terms["keypoints"] = s.keypoints * (confidence * torch.log1p(r2 / s.keypoint_px**2)).sum()
     articulation = reference_rotations.transpose(-1, -2) @ rotations[:, driven]
     trace = articulation.diagonal(dim1=-2, dim2=-1).sum(-1)
-    # acos's gradient is infinite at 0: the prior reads 2 (1 - cos a) ~ a^2 instead
+    # acos's gradient is infinite at 0: the prior reads (3 - trace) / s^2 = 2 (1 - cos a) / s^2
+    # ~ a^2 / s^2 instead, a Gaussian of spread s / sqrt(2) in the angle a
     terms["articulation"] = ((3 - trace) / math.radians(s.articulation_deg) ** 2).sum()
     if anchor is not None:  # the previous chunk's last frame, fixed
         joints = torch.cat([anchor[0], joints])
