@@ -114,6 +114,12 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "steps of the posture polish after stages 2-3 (motion register's default; 0: none)",
         ge=0,
     )
+    proportion_steps: int = setting(
+        100,
+        "steps of the polish's fit of the student's proportions, where there are 2-D joints "
+        "(motion register's default; 0: the reference's proportions)",
+        ge=0,
+    )
     out_dir: str = setting("runs/register_synthetic", "output folder")
     tiny: bool = setting(False, "a quick run (8 frames, 30 particles, 2 iterations)")
 
@@ -283,8 +289,16 @@ def _swing_error_deg(a_true: Tensor, a_est: Tensor, directions: Tensor) -> Tenso
     return torch.rad2deg(torch.acos((u * v).sum(-1).clamp(-1, 1)))
 
 
-def _student_joints(reference: Reference, rotations: Tensor, root: Tensor, scale: float):
+def _student_joints(
+    reference: Reference,
+    rotations: Tensor,
+    root: Tensor,
+    scale: float,
+    joint_scales: Tensor | None = None,
+):
     offsets = reference.skeleton.offsets.to(rotations) * scale
+    if joint_scales is not None:
+        offsets = offsets * joint_scales.to(rotations)[:, None]
     zero = torch.zeros(rotations.shape[0], 3, dtype=rotations.dtype)
     fk = forward_kinematics(reference.skeleton, rotations, zero, offsets)
     return fk.positions - fk.positions[:, :1] + root[:, None]
@@ -305,7 +319,7 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
     return RegistrationSettings(
         Stage1Settings(),
         refine,
-        PosturePolishSettings(steps=cfg.polish_steps),
+        PosturePolishSettings(steps=cfg.polish_steps, proportion_steps=cfg.proportion_steps),
         scale=cfg.scale or None,
         seed=cfg.seed,
     )
@@ -360,7 +374,9 @@ def run(cfg: RegisterSyntheticConfig):
     long = _long_bones(reference, driven)
     t_rot = rotation_angle_error_deg(truth.rotation, result.T_rotation)
     t_pos = (truth.position - result.T_translation).norm(dim=-1) / truth.height
-    joints = _student_joints(reference, result.rotations, result.T_translation, result.G)
+    joints = _student_joints(
+        reference, result.rotations, result.T_translation, result.G, result.joint_scales()
+    )
     e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height
     long_joints = [driven[i] for i in long]
     bone_err = _bone_direction_error_deg(reference, long_joints, joints, truth.joints)
@@ -413,6 +429,7 @@ def run(cfg: RegisterSyntheticConfig):
         "a_err_deg_mean_long_bones_no_change": float(a_err0[:, long].mean()),
         "bone_dir_err_deg_mean": float(bone_err.mean()),
         "bone_dir_err_deg_mean_no_change": float(bone_err0.mean()),
+        **proportion_errors(reference, student, result),
         "sec_polish": result.timings.get("polish", 0.0),
         "e3d_mean": float(e3d.mean()),
         "silhouette_iou_mean": float(result.fit.mean()),
@@ -446,6 +463,37 @@ def run(cfg: RegisterSyntheticConfig):
         )
     data = {"columns": columns, "joints": joint_names, "joint_err": a_err.mean(0).numpy()}
     return metrics, columns, data
+
+
+def true_part_scales(reference: Reference, student: Reference | None) -> Tensor:
+    """``(P,)`` each body part's true length factor: the student's capsule axis over the
+    reference's (each measured on its own motion, :class:`motion.body.spec.BodySpec`; one
+    bone per limb part, so its length ratio); all 1 for the reference itself."""
+    if student is None:
+        return torch.ones(reference.spec.num_parts, dtype=torch.float64)
+    return student.spec.shapes.axis.norm(dim=-1) / reference.spec.shapes.axis.norm(dim=-1)
+
+
+def proportion_errors(reference: Reference, student: Reference | None, result) -> dict[str, float]:
+    """The estimated part lengths (G times the proportions) against the truth, percent:
+    ``scale_err_pct_mean`` / ``_max`` over the parts, and ``proportion_err_pct_mean`` /
+    ``_max`` of their shape alone (both divided by their geometric mean: what one
+    perspective camera can tell, with the body's size traded against its depth); each with
+    its ``_no_change`` anchor (G alone, the reference's proportions); NaN-free."""
+    truth = true_part_scales(reference, student)
+    estimate = torch.full_like(truth, float(result.G))
+    anchor = estimate.clone()
+    if result.proportions is not None:
+        estimate = estimate * result.proportions.part_scales.to(truth)
+    out = {}
+    for name, est in (("", estimate), ("_no_change", anchor)):
+        ratio = est / truth
+        shape = ratio / ratio.log().mean().exp()
+        out[f"scale_err_pct_mean{name}"] = float((ratio - 1).abs().mean() * 100)
+        out[f"scale_err_pct_max{name}"] = float((ratio - 1).abs().max() * 100)
+        out[f"proportion_err_pct_mean{name}"] = float((shape - 1).abs().mean() * 100)
+        out[f"proportion_err_pct_max{name}"] = float((shape - 1).abs().max() * 100)
+    return out
 
 
 def _clinical(body: Reference, rotations: Tensor) -> ClinicalAngles:

@@ -35,7 +35,7 @@ from motion.bodyparts import BodyModel, joint_of_point, read_parts
 from motion.kinematics import FKResult, Skeleton
 from motion.limits import load_limits
 
-__all__ = ["BodySpec", "BodySpecError", "part_tree", "topological_order"]
+__all__ = ["BodySpec", "BodySpecError", "joint_parts", "part_tree", "topological_order"]
 
 
 class BodySpecError(ValueError):
@@ -229,6 +229,29 @@ def _chain(skeleton: Skeleton, model: BodyModel, part: dict) -> list[int]:
     if start not in chain:
         chain.append(start)  # the landmarks are not on one chain: the proximal joint's frame
     return chain
+
+
+def joint_parts(skeleton: Skeleton, model: BodyModel) -> Tensor:
+    """``(J,)`` long: the part (``model.part_names``' order) each joint moves with -- the part
+    whose chain of joints (from its proximal landmark's joint towards its distal one's) holds
+    the joint or, failing that, its nearest ancestor -- or -1 when none does.
+
+    A bone (a joint's offset from its parent) and an End Site lie in the part of the joint
+    they hang from: the thigh's length is the knee's offset, which hangs from the hip joint in
+    the thigh's chain. So a part's length factor scales the offsets of the joints whose parent
+    is in it (:meth:`motion.registration.types.Proportions.joint_scales`)."""
+    spec = read_parts(model.parts_path)
+    own = torch.full((skeleton.num_joints,), -1, dtype=torch.long)
+    for p, name in enumerate(model.part_names):
+        for j in _chain(skeleton, model, spec[name]):
+            if own[j] < 0:  # the first part naming a joint keeps it
+                own[j] = p
+    out = own.clone()
+    for j in range(skeleton.num_joints):  # parents come before their children
+        parent = int(skeleton.parents[j])
+        if out[j] < 0 and parent >= 0:
+            out[j] = out[parent]
+    return out
 
 
 def _in_frame(rotations: Tensor, vectors: Tensor) -> Tensor:

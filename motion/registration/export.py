@@ -48,7 +48,7 @@ from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
 from motion.registration.movement import MovementCheck
-from motion.registration.types import Reference, Registration, RegistrationError
+from motion.registration.types import Proportions, Reference, Registration, RegistrationError
 from motion.settings import Settings, setting
 
 __all__ = [
@@ -65,6 +65,7 @@ __all__ = [
     "load_registration",
     "matrix_to_bvh_euler",  # = motion.geometry.matrix_to_euler
     "per_joint_mean_abs_deg",
+    "proportion_words",
     "save_registration",
     "student_bvh",
     "student_kinematics",
@@ -248,9 +249,12 @@ def _check_rate(frame_rate: float) -> float:
 
 def student_kinematics(reg: Registration, reference: Reference) -> FKResult:
     """The registered student's forward kinematics in the cameras' world frame: the
-    reference's skeleton scaled by ``reg.G``, local rotations ``reg.rotations``, root joint
-    at ``reg.T_translation``. Positions ``(T', J, 3)`` metres, float64."""
+    reference's skeleton scaled by ``reg.G`` (and the student's proportions, where
+    measured), local rotations ``reg.rotations``, root joint at ``reg.T_translation``.
+    Positions ``(T', J, 3)`` metres, float64."""
     offsets = reference.skeleton.offsets.to(F64) * float(reg.G)
+    if reg.proportions is not None:
+        offsets = offsets * reg.proportions.joint_scales().to(F64)[:, None]
     return forward_kinematics(
         reference.skeleton, reg.rotations.to(F64), reg.T_translation.to(F64) - offsets[0], offsets
     )
@@ -677,6 +681,7 @@ def bvh_from_rotations(
     root_position: Tensor,
     frame_rate: float,
     scale: float = 1.0,
+    proportions: Proportions | None = None,
 ) -> BVH:
     """A BVH on ``hierarchy``'s skeleton playing the given local rotations.
 
@@ -691,6 +696,9 @@ def bvh_from_rotations(
             joint 0, offset included, as ``Registration.T_translation``).
         frame_rate: frames per second (``Frame Time`` = ``1 / frame_rate``).
         scale: body scale G: OFFSETs and End Sites multiplied by it.
+        proportions: the student's part lengths on top of G (each OFFSET multiplied by
+            :meth:`~motion.registration.types.Proportions.joint_scales`, each End Site by
+            its joint's part's factor); ``None``: G alone.
 
     Returns:
         :class:`motion.bvh.BVH` (``path`` = ``hierarchy.path``). Rotation channels hold the
@@ -721,7 +729,11 @@ def bvh_from_rotations(
         raise RegistrationError(f"metres_per_unit must be > 0; got {metres_per_unit}")
     scale = float(scale)
     rotations = rotations.detach().to(F64).cpu()
-    offsets = hierarchy.offsets * scale
+    bones, ends = np.ones(j), np.ones(j)
+    if proportions is not None:
+        bones = proportions.joint_scales().detach().cpu().numpy()
+        ends = proportions.end_site_scales().detach().cpu().numpy()
+    offsets = hierarchy.offsets * scale * bones[:, None]
     root = root_position.detach().to(F64).cpu().numpy() / metres_per_unit - offsets[0]
     motion = np.zeros((t, sum(len(c) for c in hierarchy.channels)))
     col = 0
@@ -755,7 +767,7 @@ def bvh_from_rotations(
         parents=hierarchy.parents.copy(),
         offsets=offsets,
         channels=[list(c) for c in hierarchy.channels],
-        end_sites={k: v * scale for k, v in hierarchy.end_sites.items()},
+        end_sites={k: v * scale * ends[k] for k, v in hierarchy.end_sites.items()},
         frame_time=frame_time,
         motion=motion,
     )
@@ -765,7 +777,7 @@ def student_bvh(reg: Registration, reference: Reference, frame_rate: float) -> B
     """The recovered motion as a BVH on the reference's skeleton.
 
     The reference file (:attr:`Reference.name`) gives the hierarchy, channels and channel
-    order; OFFSETs are scaled by G; the root's position is ``reg.T_translation``, local
+    order; OFFSETs are scaled by G and the student's proportions (where measured); the root's position is ``reg.T_translation``, local
     rotations ``reg.rotations``; lengths in the reference file's own unit
     (``reference.skeleton.metres_per_unit``), frame time ``1 / frame_rate``
     (:func:`bvh_from_rotations`).
@@ -798,6 +810,7 @@ def student_bvh(reg: Registration, reference: Reference, frame_rate: float) -> B
         reg.T_translation,
         frame_rate,
         scale=float(reg.G),
+        proportions=reg.proportions,
     )
 
 
@@ -813,10 +826,14 @@ def write_student_bvh(
 _FORMAT = "motion.registration.Registration/1"
 
 
+#: the array fields of :class:`Proportions` in its constructor's order, after ``part_names``
+_PROPORTION_ARRAYS = ("part_scales", "joint_parts", "parents")
+
+
 def save_registration(reg: Registration, path: str | Path) -> Path:
     """Write a :class:`Registration` as ``.npz``: each tensor field as its numpy array (dtype
-    kept), ``G`` as a float64 scalar, ``timings`` and ``notes`` as JSON strings, plus a
-    ``format`` tag. Returns the path (numpy adds ``.npz`` when missing)."""
+    kept), ``G`` as a float64 scalar, ``timings`` and ``notes`` as JSON strings, the
+    proportions' fields as ``proportions.<field>``, plus a ``format`` tag. Returns the path (numpy adds ``.npz`` when missing)."""
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
@@ -829,6 +846,11 @@ def save_registration(reg: Registration, path: str | Path) -> Path:
             arrays[f.name] = np.array(json.dumps(value))
         elif isinstance(value, int | float):
             arrays[f.name] = np.array(float(value))
+        elif isinstance(value, Proportions):  # its fields, under "proportions.<field>"
+            arrays[f"{f.name}.part_names"] = np.array(json.dumps(value.part_names))
+            for sub in _PROPORTION_ARRAYS:
+                arrays[f"{f.name}.{sub}"] = getattr(value, sub).detach().cpu().numpy()
+            arrays[f"{f.name}.measured"] = np.array(value.measured)
         else:
             raise TypeError(f"cannot save Registration.{f.name} of type {type(value).__name__}")
     np.savez(path, **arrays)
@@ -856,8 +878,14 @@ def load_registration(path: str | Path) -> Registration:
         if missing:
             raise RegistrationError(f"{path}: missing fields {missing}")
         values = {}
+        if "proportions.part_scales" in keys:
+            values["proportions"] = Proportions(
+                json.loads(str(data["proportions.part_names"])),
+                *(torch.from_numpy(data[f"proportions.{k}"].copy()) for k in _PROPORTION_ARRAYS),
+                bool(data["proportions.measured"]),
+            )
         for f in fields:
-            if f.name not in keys:  # an older file: the field's default
+            if f.name not in keys:  # an older file, or a field stored in parts: its default
                 continue
             arr = data[f.name]
             if arr.dtype.kind == "U":
@@ -915,6 +943,9 @@ class RegistrationSummary:
             match, then what the input or the inference could not do (frames carried over,
             a video cut short).
         movement: the movement check's evidence (:class:`MovementCheck` as a dict).
+        proportions: the student's length factor of each body part on top of G
+            (:class:`~motion.registration.types.Proportions`; 1: the reference's proportions),
+            empty when not measured (no 2-D joints, or the fit turned off).
         detection: the person detector's run when one gave the 2-D joints
             (:meth:`motion.perception.run.DetectionRun.summary`: detector, frames per
             second, frames detected per camera, whether an earlier run's files were
@@ -943,6 +974,7 @@ class RegistrationSummary:
     warnings: list[str] = field(default_factory=list)
     movement: dict = field(default_factory=dict)
     G_measured: bool = True
+    proportions: dict[str, float] = field(default_factory=dict)
     detection: dict = field(default_factory=dict)
 
     def to_json(self, indent: int | None = 2) -> str:
@@ -950,6 +982,26 @@ class RegistrationSummary:
         numpy values and dataclasses in ``settings`` as their plain values (others as
         text)."""
         return json.dumps(_jsonable(dataclasses.asdict(self)), indent=indent, allow_nan=False)
+
+
+def proportion_words(proportions: dict[str, float], most: int = 4, least_pct: float = 2.0) -> str:
+    """The parts whose length differs most from the reference's, for a user: ``"thighs 7 %
+    shorter, shins 5 % longer"`` (left and right, named ``X_l`` / ``X_r``, read as one;
+    at most ``most``, each differing by at least ``least_pct`` percent; ``""`` when none
+    does)."""
+    groups: dict[str, list[float]] = {}
+    for name, scale in proportions.items():
+        pair = name[-2:] in ("_l", "_r")
+        key = (name[:-2] + "s" if pair else name).replace("_", " ")
+        groups.setdefault(key, []).append(scale)
+    means = {k: sum(v) / len(v) for k, v in groups.items()}
+    large = sorted(
+        ((k, (x - 1) * 100) for k, x in means.items() if abs(x - 1) * 100 >= least_pct),
+        key=lambda kv: -abs(kv[1]),
+    )[:most]
+    return ", ".join(
+        f"{k} {abs(pct):.0f} % {'longer' if pct > 0 else 'shorter'}" for k, pct in large
+    )
 
 
 def _jsonable(value):
@@ -1033,6 +1085,7 @@ def summarise(
         speed_ratio=speed,
         G=float(reg.G),
         G_measured=bool(reg.G_measured),
+        proportions={} if reg.proportions is None else reg.proportions.as_dict(),
         silhouette_iou_mean=sum(finite) / len(finite) if finite else None,
         fit=[_finite_or_none(x) for x in fit],
         per_joint_mean_abs_deg={

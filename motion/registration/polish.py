@@ -24,6 +24,13 @@ gradient descent (Adam) on
 C and G stay as given; the frames are solved in chunks, each chunk's first frame tied to the
 previous chunk's last.
 
+Before the frames, where the video has 2-D joints, the **student's proportions** (the
+proposal's G per bone: :class:`~motion.registration.types.Proportions`) are fitted: one
+length factor per body part (left and right sharing one), shared by every frame, on up to
+``proportion_frames`` frames spread over the video together with their postures, under a
+log-normal prior about 1 (the same terms, without smoothness between frames that are not
+neighbours). The frames are then polished on the student's proportions.
+
 Conventions: metres, radians, pixels; column vectors, right-handed world (DESIGN.md section
 3). Shapes: ``T'`` video frames, ``J`` joints, ``C`` cameras, ``P`` parts, ``N`` points.
 """
@@ -43,11 +50,17 @@ from motion.cameras import CameraRig
 from motion.features import distance_to_edges
 from motion.geometry import rotation_vector_to_matrix
 from motion.kinematics import FKResult
-from motion.registration.types import Reference, RegistrationError, VideoFeatures, scaled_spec
+from motion.registration.types import (
+    Proportions,
+    Reference,
+    RegistrationError,
+    VideoFeatures,
+    scaled_spec,
+)
 from motion.render import capsule_sdf, project_parts
 from motion.settings import SettingError, Settings, setting
 
-__all__ = ["PolishResult", "PosturePolishSettings", "polish_posture"]
+__all__ = ["PolishResult", "PosturePolishSettings", "part_groups", "polish_posture"]
 
 
 class PosturePolishSettingsError(SettingError, RegistrationError):
@@ -100,19 +113,42 @@ class PosturePolishSettings(Settings):
         0.01, "metres, the spread of the root's correction's change from frame to frame", gt=0
     )
     frames_per_chunk: int = setting(64, "video frames solved together", ge=2)
+    proportion_steps: int = setting(
+        100,
+        "Adam steps of the proportions' fit: each body part's length on top of G, shared by "
+        "every frame, fitted on frames spread over the video before the frames are polished, "
+        "where the video has 2-D joints (0, or none: the reference's proportions)",
+        ge=0,
+        le=100000,
+    )
+    proportion_frames: int = setting(
+        32, "video frames (spread evenly over those where the person is seen) it fits on", ge=1
+    )
+    proportion_pct: float = setting(
+        8.0,
+        "percent, the spread of the prior on each part's length factor about 1 (log-normal: "
+        "what the images cannot tell stays the reference's)",
+        gt=0,
+        le=100,
+    )
+    symmetric: bool = setting(
+        True, "left and right parts (names ending _l and _r) share one length factor"
+    )
     seed: int = setting(0, "seed of the silhouette pixels' sampling", ge=0)
 
 
 @dataclass
 class PolishResult:
     """The polished posture: local ``rotations`` ``(T', J, 3, 3)`` float64 (the root's is
-    T's), root ``translation`` ``(T', 3)`` metres, and the loss before and after
-    (``loss_start``, ``loss_end``: nats, summed over the chunks)."""
+    T's), root ``translation`` ``(T', 3)`` metres, the loss before and after
+    (``loss_start``, ``loss_end``: nats, summed over the chunks), and the student's
+    ``proportions`` (not measured when ``proportion_steps`` is 0)."""
 
     rotations: Tensor
     translation: Tensor
     loss_start: float
     loss_end: float
+    proportions: Proportions
 
 
 @dataclass
@@ -211,9 +247,10 @@ class _Posture:
         top = rotation_vector_to_matrix(root) @ self.start[:, 0]
         return torch.cat([top[:, None], local[:, 1:]], 1)
 
-    def frames(self, rotations: Tensor) -> FKResult:
-        """The posture's forward kinematics in the root's frame (scaled by G)."""
-        return self.reference.posture_frames(rotations, self.scale)
+    def frames(self, rotations: Tensor, joint_scales: Tensor | None = None) -> FKResult:
+        """The posture's forward kinematics in the root's frame (scaled by G, and each
+        offset by ``joint_scales`` ``(J,)`` when given)."""
+        return self.reference.posture_frames(rotations, self.scale, joint_scales)
 
     def world_joints(
         self, rotations: Tensor, translation: Tensor, fk: FKResult | None = None
@@ -227,8 +264,8 @@ class _Posture:
     def segments(
         self, spec: BodySpec, rotations: Tensor, translation: Tensor, fk: FKResult | None = None
     ) -> Tensor:
-        """``(n, P, 2, 3)`` metres: every capsule's axis in the world (``fk`` as in
-        :meth:`world_joints`)."""
+        """``(n, P, 2, 3)`` metres: every capsule's axis in the world (``spec``: the body at
+        this size and these proportions; ``fk`` as in :meth:`world_joints`)."""
         ref = self.reference
         fk = self.frames(rotations) if fk is None else fk
         poses = spec.poses(ref.model, ref.skeleton, fk)
@@ -237,32 +274,52 @@ class _Posture:
         return (root @ ends[..., None]).squeeze(-1) + translation[:, None, None]
 
 
+@dataclass
+class _Problem:
+    """What one descent of :func:`_losses` works on: the posture, the body (``spec`` at G,
+    the ``proportions``' parts and bones), the images' ``targets``, the skeleton joint of
+    each keypoint column, the reference's rotations of the driven joints at C ``(n, D, 3,
+    3)``, and the root's start ``(n, 3)`` metres."""
+
+    posture: _Posture
+    spec: BodySpec
+    proportions: Proportions
+    rig: CameraRig
+    targets: _Targets
+    keypoint_joints: Tensor | None
+    reference_rotations: Tensor
+    driven: list[int]
+    translation: Tensor
+
+
 def _losses(
-    posture: _Posture,
-    spec: BodySpec,
-    rig: CameraRig,
-    targets: _Targets,
-    keypoint_joints: Tensor | None,
-    reference_rotations: Tensor,
-    driven: list[int],
+    problem: _Problem,
     joints: Tensor,
     root: Tensor,
     shift: Tensor,
-    translation: Tensor,
+    part_scales: Tensor | None,
     anchor: tuple[Tensor, Tensor, Tensor] | None,
+    smooth: bool,
     s: PosturePolishSettings,
 ) -> dict[str, Tensor]:
     """Each term of the polish's loss (nats) at corrections ``joints`` ``(n, J, 3)``,
-    ``root`` ``(n, 3)``, ``shift`` ``(n, 3)`` metres."""
+    ``root`` ``(n, 3)``, ``shift`` ``(n, 3)`` metres and the parts' length factors
+    ``part_scales`` ``(P,)`` (``None``: the problem's proportions); ``smooth``: the frames
+    are consecutive (else no smoothness term)."""
+    posture, targets = problem.posture, problem.targets
+    if part_scales is None:
+        part_scales = problem.proportions.part_scales
+    spec = scaled_spec(problem.spec, 1.0, part_scales)
     rotations = posture.rotations(joints, root)
-    fk = posture.frames(rotations)  # once per step, for the silhouettes and the joints
-    moved = translation + shift
+    # once per step, for the silhouettes and the joints
+    fk = posture.frames(rotations, problem.proportions.joint_scales(part_scales))
+    moved = problem.translation + shift
     terms: dict[str, Tensor] = {}
     if s.silhouette > 0:
         # float32 from here: the signed distances of every sampled pixel to every capsule
         # are the polish's bulk (float64 took twice as long for the same result)
         segments = posture.segments(spec, rotations, moved, fk).float()
-        parts = project_parts(rig, segments, spec.shapes.radii.to(segments))
+        parts = project_parts(problem.rig, segments, spec.shapes.radii.to(segments))
         # the body's outline, outside the silhouette
         outline = capsule_outline(parts.ends, parts.radii, s.outline_points)  # (n,C,P,S,2)
         n, c = outline.shape[:2]
@@ -273,28 +330,78 @@ def _losses(
         cover = (uncovered * targets.sample_mask).sum(-1) / targets.sample_mask.sum(-1).clamp_min(1)
         per_view = (out + cover) / (2 * s.silhouette_px**2)
         terms["silhouette"] = s.silhouette * (per_view * targets.view).sum().double()
-    if s.keypoints > 0 and targets.keypoints is not None and keypoint_joints is not None:
-        world = posture.world_joints(rotations, moved, fk)[:, keypoint_joints]  # (n, K, 3)
-        uv, depth = rig.project(world)  # (n, C, K, 2), (n, C, K)
+    kp_joints = problem.keypoint_joints
+    if s.keypoints > 0 and targets.keypoints is not None and kp_joints is not None:
+        world = posture.world_joints(rotations, moved, fk)[:, kp_joints]  # (n, K, 3)
+        uv, depth = problem.rig.project(world)  # (n, C, K, 2), (n, C, K)
         kp = targets.keypoints.to(uv)
         confidence = torch.where(depth > 0, kp[..., 2], torch.zeros_like(kp[..., 2]))
         r2 = (uv - kp[..., :2]).square().sum(-1)
         terms["keypoints"] = s.keypoints * (confidence * torch.log1p(r2 / s.keypoint_px**2)).sum()
-    articulation = reference_rotations.transpose(-1, -2) @ rotations[:, driven]
+    articulation = problem.reference_rotations.transpose(-1, -2) @ rotations[:, problem.driven]
     trace = articulation.diagonal(dim1=-2, dim2=-1).sum(-1)
     # acos's gradient is infinite at 0: the prior reads (3 - trace) / s^2 = 2 (1 - cos a) / s^2
     # ~ a^2 / s^2 instead, a Gaussian of spread s / sqrt(2) in the angle a
     terms["articulation"] = ((3 - trace) / math.radians(s.articulation_deg) ** 2).sum()
+    if not smooth:
+        return terms
     if anchor is not None:  # the previous chunk's last frame, fixed
         joints = torch.cat([anchor[0], joints])
         root = torch.cat([anchor[1], root])
         shift = torch.cat([anchor[2], shift])
     turn = (joints[1:] - joints[:-1]) * posture.mask
-    smooth = turn.square().sum() + (root[1:] - root[:-1]).square().sum()
-    terms["smoothness"] = smooth / (2 * math.radians(s.smooth_deg) ** 2) + (
+    smoothness = turn.square().sum() + (root[1:] - root[:-1]).square().sum()
+    terms["smoothness"] = smoothness / (2 * math.radians(s.smooth_deg) ** 2) + (
         shift[1:] - shift[:-1]
     ).square().sum() / (2 * s.smooth_m**2)
     return terms
+
+
+def _descend(
+    loss: Callable[[], Tensor], variables: list[Tensor], steps: int, lr: float
+) -> tuple[float, float, list[Tensor] | None]:
+    """Adam on ``variables`` for ``steps`` steps of ``loss()``: ``(first loss, best loss,
+    the variables at the best)`` (``None`` when no loss was finite). Adam jitters about an
+    optimum by about ``lr``, so the best iterate is kept, not the last."""
+    optimiser = torch.optim.Adam(variables, lr=lr)
+    first, best = math.nan, (math.inf, None)
+    for step in range(steps + 1):  # the last pass only scores the last step
+        optimiser.zero_grad()
+        value = loss()
+        if not torch.isfinite(value):
+            break
+        if step == 0:
+            first = float(value.detach())
+        if float(value.detach()) < best[0]:
+            best = (float(value.detach()), [x.detach().clone() for x in variables])
+        if step < steps:
+            value.backward()
+            optimiser.step()
+    return first, best[0], best[1]
+
+
+def part_groups(names: list[str], symmetric: bool) -> tuple[list[str], Tensor]:
+    """The groups of parts that share a length factor: ``(group names, (P,) long group of
+    each part)``. ``symmetric``: a part named ``X_l`` and one named ``X_r`` form group ``X``;
+    otherwise (and for every other part) a part is its own group."""
+    groups: list[str] = []
+    index = []
+    for name in names:
+        key = name[:-2] if symmetric and name[-2:] in ("_l", "_r") else name
+        if key not in groups:
+            groups.append(key)
+        index.append(groups.index(key))
+    return groups, torch.tensor(index)
+
+
+def _spread_frames(seen: Tensor, most: int) -> Tensor:
+    """Up to ``most`` indices of the ``True`` entries of ``seen`` ``(T',)``, spread evenly
+    (first and last included)."""
+    frames = seen.nonzero().flatten()
+    if len(frames) <= most:
+        return frames
+    picks = torch.linspace(0, len(frames) - 1, most).round().long().unique()
+    return frames[picks]
 
 
 def polish_posture(
@@ -331,79 +438,106 @@ def polish_posture(
             f"expected C ({t},), translation ({t}, 3) and {t} video frames; got "
             f"{tuple(c.shape)}, {tuple(translation.shape)}, {video.num_frames}"
         )
-    start = PolishResult(rotations.double(), translation.double(), 0.0, 0.0)
-    if s.steps == 0:
+    proportions = Proportions.of(reference)
+    start = PolishResult(rotations.double(), translation.double(), 0.0, 0.0, proportions)
+    if s.steps == 0 and s.proportion_steps == 0:
         return start
-    spec = scaled_spec(reference.spec, scale)
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
-    obs = video.observation
-    keypoint_joints, columns = None, None
-    if obs.keypoints is not None and video.keypoint_joints is not None:
-        # the columns naming a joint of this skeleton (others, if any, are not its joints)
-        names = reference.skeleton.names
-        pairs = [(i, names.index(n)) for i, n in enumerate(video.keypoint_joints) if n in names]
-        if pairs:
-            columns = torch.tensor([i for i, _ in pairs])
-            keypoint_joints = torch.tensor([j for _, j in pairs])
+    columns, keypoint_joints = _keypoint_columns(reference, video)
     generator = torch.Generator().manual_seed(s.seed)
-    out_rot, out_trans = start.rotations.clone(), start.translation.clone()
-    before = after = 0.0
-    anchor = None
-    firsts = range(0, t, s.frames_per_chunk)
-    wrap = progress or (lambda items, description, total: items)
-    for first in wrap(firsts, "polish (T, A)", len(firsts)):
-        chunk = slice(first, min(t, first + s.frames_per_chunk))
+
+    def problem(frames: Tensor | slice, rot: Tensor, trans: Tensor, body: Proportions):
+        obs = video.observation
         outside, samples, sample_mask, view = _silhouette_targets(
-            obs.silhouette[0, chunk].float(), s.silhouette_samples, generator
+            obs.silhouette[0, frames].float(), s.silhouette_samples, generator
         )
         keypoints = None
         if columns is not None:
-            keypoints = obs.keypoints[0, chunk][:, :, columns].double()
-        targets = _Targets(outside, samples, sample_mask, view, keypoints)
-        posture = _Posture(reference, scale, out_rot[chunk], driven)
-        ref_rot = reference.rotations[c[chunk]][:, driven].double()
+            keypoints = obs.keypoints[0, frames][:, :, columns].double()
+        return _Problem(
+            _Posture(reference, scale, rot, driven),
+            scaled_spec(reference.spec, scale),
+            body,
+            video.cameras,
+            _Targets(outside, samples, sample_mask, view, keypoints),
+            keypoint_joints,
+            reference.rotations[c[frames]][:, driven].double(),
+            driven,
+            trans,
+        )
+
+    # the proportions rest on the 2-D joints: a silhouette does not show where along a limb
+    # its joint lies (a longer thigh under a shorter shin draws the same straight leg), and
+    # measured without them the part lengths drift within their prior (decision 003)
+    if s.proportion_steps and columns is not None:
+        frames = _spread_frames(video.seen(), s.proportion_frames)
+        fitted = _fit_proportions(
+            problem(frames, start.rotations[frames], start.translation[frames], proportions), s
+        )
+        proportions = Proportions.of(reference, fitted)
+    out_rot, out_trans = start.rotations.clone(), start.translation.clone()
+    before = after = 0.0
+    anchor = None
+    firsts = range(0, t, s.frames_per_chunk) if s.steps else range(0)
+    wrap = progress or (lambda items, description, total: items)
+    for first in wrap(firsts, "polish (T, A)", len(firsts)):
+        chunk = slice(first, min(t, first + s.frames_per_chunk))
+        task = problem(chunk, out_rot[chunk], out_trans[chunk], proportions)
         n = chunk.stop - chunk.start
         joints = torch.zeros(n, j, 3, dtype=torch.float64, requires_grad=True)
         root = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
         shift = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
-        optimiser = torch.optim.Adam([joints, root, shift], lr=s.lr)
-        base = out_trans[chunk]
-        losses: list[float] = []
-        best = (math.inf, None)
-        for step in range(s.steps + 1):  # the last pass only scores the last step
-            optimiser.zero_grad()
-            terms = _losses(
-                posture,
-                spec,
-                video.cameras,
-                targets,
-                keypoint_joints,
-                ref_rot,
-                driven,
-                joints,
-                root,
-                shift,
-                base,
-                anchor,
-                s,
-            )
-            loss = sum(terms.values())
-            if not torch.isfinite(loss):
-                break
-            losses.append(float(loss.detach()))
-            if losses[-1] < best[0]:  # Adam jitters about an optimum by ~lr: keep the best
-                best = (losses[-1], [x.detach().clone() for x in (joints, root, shift)])
-            if step < s.steps:
-                loss.backward()
-                optimiser.step()
-        if best[1] is None:  # nothing finite to descend: the chunk keeps its start
+
+        def loss(task=task, joints=joints, root=root, shift=shift, anchor=anchor):
+            return sum(_losses(task, joints, root, shift, None, anchor, True, s).values())
+
+        first_loss, best_loss, best = _descend(loss, [joints, root, shift], s.steps, s.lr)
+        if best is None:  # nothing finite to descend: the chunk keeps its start
             anchor = None
             continue
-        best_joints, best_root, best_shift = best[1]
+        best_joints, best_root, best_shift = best
         with torch.no_grad():
-            out_rot[chunk] = posture.rotations(best_joints, best_root)
-            out_trans[chunk] = base + best_shift
+            out_rot[chunk] = task.posture.rotations(best_joints, best_root)
+            out_trans[chunk] = task.translation + best_shift
             anchor = (best_joints[-1:], best_root[-1:], best_shift[-1:])
-        before += losses[0]
-        after += best[0]
-    return PolishResult(out_rot, out_trans, before, after)
+        before += first_loss
+        after += best_loss
+    return PolishResult(out_rot, out_trans, before, after, proportions)
+
+
+def _keypoint_columns(
+    reference: Reference, video: VideoFeatures
+) -> tuple[Tensor | None, Tensor | None]:
+    """The keypoint columns that name a joint of the reference's skeleton and those joints
+    (others, if any, are another body model's landmarks): ``(columns, joints)`` long, or
+    ``(None, None)`` when there are none."""
+    if video.observation.keypoints is None or video.keypoint_joints is None:
+        return None, None
+    names = reference.skeleton.names
+    pairs = [(i, names.index(n)) for i, n in enumerate(video.keypoint_joints) if n in names]
+    if not pairs:
+        return None, None
+    return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
+
+
+def _fit_proportions(task: _Problem, s: PosturePolishSettings) -> Tensor:
+    """``(P,)`` the parts' length factors fitted on ``task``'s frames (not consecutive: no
+    smoothness) together with their postures, under a log-normal prior of spread
+    ``proportion_pct`` about 1; groups (:func:`part_groups`) share a factor."""
+    names = task.proportions.part_names
+    _, group = part_groups(names, s.symmetric)
+    n, j = task.posture.start.shape[:2]
+    joints = torch.zeros(n, j, 3, dtype=torch.float64, requires_grad=True)
+    root = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+    shift = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+    log_scale = torch.zeros(int(group.max()) + 1, dtype=torch.float64, requires_grad=True)
+    spread = math.log1p(s.proportion_pct / 100)
+
+    def loss() -> Tensor:
+        terms = _losses(task, joints, root, shift, log_scale.exp()[group], None, False, s)
+        return sum(terms.values()) + log_scale.square().sum() / (2 * spread**2)
+
+    _, _, best = _descend(loss, [joints, root, shift, log_scale], s.proportion_steps, s.lr)
+    if best is None:  # nothing finite: the reference's proportions
+        return torch.ones(len(names), dtype=torch.float64)
+    return best[3].exp()[group]

@@ -55,34 +55,41 @@ class BodyPoses:
         student: ``(T', P, 7)`` the registered posture's part poses.
         reference: ``(T', P, 7)`` the reference at ``C(t')``, placed with the student's T.
         radii: ``(P, 2)`` capsule radii, metres (scaled by G).
-        axis: ``(P, 3)`` capsule axes, metres (scaled by G).
+        axis: ``(P, 3)`` the reference's capsule axes, metres (scaled by G).
+        student_axis: ``(P, 3)`` the student's (G and the student's proportions).
     """
 
     student: Tensor
     reference: Tensor
     radii: Tensor
     axis: Tensor
+    student_axis: Tensor
 
     def segments(self, which: str) -> Tensor:
         """``(T', P, 2, 3)`` capsule end points of ``which`` ("student" or "reference")."""
         poses = self.student if which == "student" else self.reference
-        shapes = PartShapes(self.axis, self.radii)
+        axis = self.student_axis if which == "student" else self.axis
+        shapes = PartShapes(axis, self.radii)
         return shapes.segments(poses, torch.arange(poses.shape[-2]))
 
 
 def body_poses(registration: Registration, reference: Reference) -> BodyPoses:
-    """Part poses of the registered student and of the reference at C, both placed by T."""
+    """Part poses of the registered student (at the student's proportions, where measured)
+    and of the reference at C, both placed by T."""
     reg = registration
     scale = float(reg.G)
-    student = reference.posture_poses(reg.rotations, scale)
+    student = reference.posture_poses(reg.rotations, scale, reg.joint_scales())
     ref = reference.body_poses(reg.C, scale)
     rot, pos = reg.T_rotation.to(torch.float64), reg.T_translation.to(torch.float64)
     spec = scaled_spec(reference.spec, scale)
+    parts = None if reg.proportions is None else reg.proportions.part_scales
+    student_spec = scaled_spec(reference.spec, scale, parts)
     return BodyPoses(
         place_poses(rot, pos, student),
         place_poses(rot, pos, ref),
         spec.shapes.radii.to(torch.float64),
         spec.shapes.axis.to(torch.float64),
+        student_spec.shapes.axis.to(torch.float64),
     )
 
 

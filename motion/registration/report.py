@@ -32,6 +32,7 @@ from motion.registration.export import (
     TRUSTED_FIT,
     JointAngles,
     RegistrationSummary,
+    proportion_words,
 )
 from motion.registration.render import BodyPoses, side_by_side_frames
 from motion.registration.types import Registration
@@ -298,6 +299,7 @@ def render_report(inputs: ReportInputs) -> str:
         first_frame=s.video_frames[0],
         size_measured=s.G_measured,
         size_note=s.notes.get("G", ""),
+        proportions=proportion_words(s.proportions),
         speed_words=_speed_words(s.speed_ratio),
         fit_mean=f"{float(fit.mean()):.2f}",
         fit_word=_fit_word(float(fit.mean())),

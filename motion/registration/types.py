@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from motion.body.observation import Observation, PartShapes
-from motion.body.spec import BodySpec
+from motion.body.spec import BodySpec, joint_parts
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig
@@ -33,10 +33,12 @@ from motion.kinematics import FKResult, Skeleton, forward_kinematics, local_rota
 
 __all__ = [
     "FRAME_CHUNK",
+    "Proportions",
     "Reference",
     "Registration",
     "RegistrationError",
     "VideoFeatures",
+    "expand_to_joints",
     "frame_ranges",
     "nonfinite_frames",
     "scaled_spec",
@@ -82,12 +84,14 @@ class Reference:
         path: str | Path,
         limits: dict | str | Path | None = None,
         drop_reference_pose: bool = True,
+        metres_per_unit: float | None = None,
     ) -> Reference:
         """Read a BVH (frame 0 dropped when it is a converter's reference pose, as
         :mod:`motion.synth` does) and build its body model and spec (``limits`` as
-        :meth:`BodySpec.from_motion`)."""
+        :meth:`BodySpec.from_motion`; ``metres_per_unit`` as :meth:`Skeleton.from_bvh`:
+        ``None`` estimates the file's unit)."""
         bvh = read_bvh(path)
-        skeleton = Skeleton.from_bvh(bvh)
+        skeleton = Skeleton.from_bvh(bvh, metres_per_unit)
         motion = bvh.motion_frames() if drop_reference_pose else bvh.motion
         rotations, root = local_rotations(
             skeleton, torch.from_numpy(motion).to(torch.float64), bvh.channels
@@ -114,14 +118,20 @@ class Reference:
             )
         return self.posture_frames(self.rotations[frames], scale)
 
-    def posture_frames(self, rotations: Tensor, scale: float | Tensor = 1.0) -> FKResult:
+    def posture_frames(
+        self, rotations: Tensor, scale: float | Tensor = 1.0, joint_scales: Tensor | None = None
+    ) -> FKResult:
         """Like :meth:`body_frames` for any local joint ``rotations`` ``(*S, J, 3, 3)`` on
         this skeleton (e.g. a registered student's): the root's rotation is ignored (taken
-        as the identity) and the root joint put at the origin."""
+        as the identity) and the root joint put at the origin. ``joint_scales`` ``(J,)``
+        multiplies each joint's offset on top of ``scale`` (the student's proportions:
+        :meth:`Proportions.joint_scales`; differentiable)."""
         rot = rotations.to(torch.float64).clone()
         rot[..., 0, :, :] = torch.eye(3, dtype=rot.dtype)
         offsets = self.skeleton.offsets.to(rot).clone()
         offsets[0] = 0.0  # the root joint sits at the origin
+        if joint_scales is not None:
+            offsets = offsets * joint_scales.to(rot)[:, None]
         zero = torch.zeros(*rot.shape[:-3], 3, dtype=rot.dtype)
         fk = forward_kinematics(self.skeleton, rot, zero, offsets)
         # the root is at the origin, so scaling every position scales every bone
@@ -133,11 +143,83 @@ class Reference:
         poses = self.spec.poses(self.model, self.skeleton, self.body_frames(frames))
         return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
 
-    def posture_poses(self, rotations: Tensor, scale: float | Tensor = 1.0) -> Tensor:
-        """Part poses of :meth:`posture_frames` ``(rotations)``: ``(*S, P, 7)`` float64 in
-        the root's frame, as :meth:`body_poses`."""
-        poses = self.spec.poses(self.model, self.skeleton, self.posture_frames(rotations))
+    def posture_poses(
+        self, rotations: Tensor, scale: float | Tensor = 1.0, joint_scales: Tensor | None = None
+    ) -> Tensor:
+        """Part poses of :meth:`posture_frames` ``(rotations, 1, joint_scales)``: ``(*S, P,
+        7)`` float64 in the root's frame, as :meth:`body_poses`."""
+        fk = self.posture_frames(rotations, 1.0, joint_scales)
+        poses = self.spec.poses(self.model, self.skeleton, fk)
         return torch.cat([poses[..., :3] * scale, poses[..., 3:]], -1)
+
+
+@dataclass(frozen=True)
+class Proportions:
+    """The student's proportions on top of G: a length factor per body part.
+
+    A part's factor scales its capsule's axis and the bones that lie in it (the offsets of
+    the joints whose parent moves with it, :func:`motion.body.spec.joint_parts`, and the
+    End Sites of its joints); 1 everywhere is the reference's proportions times G.
+
+    Attributes:
+        part_names: ``P`` names (the spec's order).
+        part_scales: ``(P,)`` float64, each part's length relative to G times the
+            reference's.
+        joint_parts: ``(J,)`` long, the part each joint moves with (-1: none).
+        parents: ``(J,)`` long, the skeleton's parents (-1 for the root).
+        measured: whether the factors were estimated (``False``: all 1, not measured).
+    """
+
+    part_names: list[str]
+    part_scales: Tensor
+    joint_parts: Tensor
+    parents: Tensor
+    measured: bool = True
+
+    @classmethod
+    def of(cls, reference: Reference, part_scales: Tensor | None = None) -> Proportions:
+        """The proportions of ``part_scales`` ``(P,)`` on ``reference`` (``None``: the
+        reference's own, not measured)."""
+        measured = part_scales is not None
+        if part_scales is None:
+            part_scales = torch.ones(reference.spec.num_parts, dtype=torch.float64)
+        if part_scales.shape != (reference.spec.num_parts,):
+            raise RegistrationError(
+                f"expected one scale per part ({reference.spec.num_parts},); got "
+                f"{tuple(part_scales.shape)}"
+            )
+        parts = joint_parts(reference.skeleton, reference.model)
+        return cls(
+            list(reference.spec.part_names),
+            part_scales.to(torch.float64),
+            parts,
+            reference.skeleton.parents.to(torch.long),
+            measured,
+        )
+
+    def joint_scales(self, part_scales: Tensor | None = None) -> Tensor:
+        """``(J,)`` each joint's offset factor: the scale of the part its parent moves with
+        (1 for the root and for bones in no part). ``part_scales`` replaces
+        :attr:`part_scales` (e.g. variables being optimised; differentiable)."""
+        return expand_to_joints(
+            self.part_scales if part_scales is None else part_scales,
+            self.joint_parts[self.parents.clamp_min(0)].masked_fill(self.parents < 0, -1),
+        )
+
+    def end_site_scales(self) -> Tensor:
+        """``(J,)`` the factor of each joint's End Site offset (its own part's scale)."""
+        return expand_to_joints(self.part_scales, self.joint_parts)
+
+    def as_dict(self) -> dict[str, float]:
+        """``{part: scale}`` in the spec's order."""
+        return {n: float(x) for n, x in zip(self.part_names, self.part_scales, strict=True)}
+
+
+def expand_to_joints(part_scales: Tensor, parts: Tensor) -> Tensor:
+    """``(J,)`` the entries of ``part_scales`` ``(P,)`` at ``parts`` ``(J,)`` long, 1 where
+    ``parts`` is -1 (differentiable in ``part_scales``)."""
+    picked = part_scales[parts.clamp_min(0)]
+    return torch.where(parts >= 0, picked, torch.ones_like(picked))
 
 
 def nonfinite_frames(*per_frame: Tensor) -> Tensor:
@@ -165,14 +247,23 @@ def frame_ranges(frames: Tensor | list[int], most: int = 6) -> str:
     return ", ".join(text)
 
 
-def scaled_spec(spec: BodySpec, scale: float | Tensor) -> BodySpec:
+def scaled_spec(
+    spec: BodySpec, scale: float | Tensor, part_scales: Tensor | None = None
+) -> BodySpec:
     """The spec of a body ``scale`` (G) times the size: capsule axes, radii and joint
-    offsets multiplied; rotations, tree and limits unchanged."""
-    scale = float(scale)
-    if scale == 1.0:
-        return spec
-    shapes = PartShapes(spec.shapes.axis * scale, spec.shapes.radii * scale)
-    return dataclasses.replace(spec, shapes=shapes, offsets=spec.offsets * scale)
+    offsets multiplied; rotations, tree and limits unchanged. ``part_scales`` ``(P,)``
+    (:attr:`Proportions.part_scales`) further lengthens each part's axis and the offsets of
+    its children's joints, which lie in it (differentiable)."""
+    if part_scales is None:
+        scale = float(scale)
+        if scale == 1.0:
+            return spec
+        shapes = PartShapes(spec.shapes.axis * scale, spec.shapes.radii * scale)
+        return dataclasses.replace(spec, shapes=shapes, offsets=spec.offsets * scale)
+    along = part_scales.to(spec.shapes.axis)[:, None]
+    parent = spec.parents.clamp_min(0)
+    shapes = PartShapes(spec.shapes.axis * along * scale, spec.shapes.radii * scale)
+    return dataclasses.replace(spec, shapes=shapes, offsets=spec.offsets * along[parent] * scale)
 
 
 @dataclass
@@ -265,6 +356,8 @@ class Registration:
             2-3's particle marginal lets its orientation go, degrees (the inference's own
             uncertainty: :func:`motion.registration.refine.rotation_spread_deg`; NaN where
             BP found no posture); empty ``(0, 0)`` when not measured.
+        proportions: the student's part lengths on top of G (:class:`Proportions`; ``None``:
+            the reference's, not measured).
     """
 
     C: Tensor
@@ -280,6 +373,11 @@ class Registration:
     warnings: list[str] = field(default_factory=list)
     G_measured: bool = True
     part_spread_deg: Tensor = field(default_factory=lambda: torch.empty(0, 0))
+    proportions: Proportions | None = None
+
+    def joint_scales(self) -> Tensor | None:
+        """``(J,)`` each joint's offset factor on top of G (``None``: all 1)."""
+        return None if self.proportions is None else self.proportions.joint_scales()
 
     @property
     def num_frames(self) -> int:

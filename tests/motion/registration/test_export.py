@@ -30,8 +30,10 @@ from motion.registration.export import (
     load_registration,
     matrix_to_bvh_euler,
     per_joint_mean_abs_deg,
+    proportion_words,
     save_registration,
     student_bvh,
+    student_kinematics,
     summarise,
     trusted_angles,
     write_joint_angles_csv,
@@ -39,7 +41,7 @@ from motion.registration.export import (
     write_student_bvh,
 )
 from motion.registration.movement import MovementCheck
-from motion.registration.types import Reference, Registration, RegistrationError
+from motion.registration.types import Proportions, Reference, Registration, RegistrationError
 from tests.motion.body.conftest import WALK
 
 F64 = torch.float64
@@ -466,6 +468,41 @@ def test_student_bvh_round_trip(tmp_path, reference):
     torch.testing.assert_close(fk.positions, want.positions, atol=1e-9, rtol=0)
 
 
+def test_student_bvh_carries_the_students_proportions(tmp_path, reference):
+    """With measured proportions the file's OFFSETs are the reference's times G times each
+    bone's part factor (the knee's offset: the thigh's), End Sites their joint's part's; the
+    file's joints equal student_kinematics'."""
+    scale = 1.1
+    reg = walk_with_hard_rotations(reference, scale)
+    parts = torch.ones(reference.spec.num_parts, dtype=F64)
+    names = reference.spec.part_names
+    parts[names.index("thigh_l")] = 0.9
+    parts[names.index("head")] = 1.2
+    reg.proportions = Proportions.of(reference, parts)
+    path = write_student_bvh(reg, reference, 30.0, tmp_path / "student.bvh")
+    back, ref_file = read_bvh(path), read_bvh(WALK)
+    knee, hip = ref_file.names.index("LeftLeg"), ref_file.names.index("LeftUpLeg")
+    np.testing.assert_allclose(back.offsets[knee], ref_file.offsets[knee] * scale * 0.9)
+    np.testing.assert_allclose(back.offsets[hip], ref_file.offsets[hip] * scale)
+    head = ref_file.names.index("Head")
+    np.testing.assert_allclose(back.end_sites[head], ref_file.end_sites[head] * scale * 1.2)
+    skel = Skeleton.from_bvh(back, metres_per_unit=reference.skeleton.metres_per_unit)
+    rot, root = local_rotations(skel, torch.from_numpy(back.motion), back.channels)
+    fk = forward_kinematics(skel, rot, root)
+    want = student_kinematics(reg, reference)
+    torch.testing.assert_close(fk.positions, want.positions, atol=1e-9, rtol=0)
+
+
+def test_proportion_words_name_the_largest_differences():
+    scales = {"pelvis": 1.0, "thigh_l": 0.93, "thigh_r": 0.93, "shin_l": 1.05}
+    scales |= {"shin_r": 1.05, "head": 1.01, "upper_arm_l": 1.11, "upper_arm_r": 1.09}
+    assert (
+        proportion_words(scales) == "upper arms 10 % longer, thighs 7 % shorter, shins 5 % longer"
+    )
+    assert proportion_words(scales, most=1) == "upper arms 10 % longer"
+    assert proportion_words({"pelvis": 1.01}) == ""
+
+
 def test_student_bvh_needs_the_reference_file(reference):
     reg = make_registration(reference, num_frames=3)
     elsewhere = dataclasses.replace(reference, name="no/such/walk.bvh")
@@ -543,6 +580,12 @@ def test_save_and_load_registration(tmp_path, reference):
     reg.G_measured = False
     assert load_registration(save_registration(reg, tmp_path / "unmeasured")).G_measured is False
     assert back.timings == reg.timings and back.notes == reg.notes
+    assert back.proportions is None
+    parts = torch.linspace(0.9, 1.1, reference.spec.num_parts, dtype=F64)
+    reg.proportions = Proportions.of(reference, parts)
+    back = load_registration(save_registration(reg, tmp_path / "proportions")).proportions
+    assert back.part_names == reg.proportions.part_names and back.measured
+    assert torch.equal(back.joint_scales(), reg.proportions.joint_scales())
 
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(RegistrationError, match="not a saved registration"):

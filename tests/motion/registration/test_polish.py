@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from motion.body.observation import PartShapes
+from motion.bvh import read_bvh, write_bvh
 from motion.geometry import rotation_vector_to_matrix
 from motion.registration import Reference
 from motion.registration.inputs import features_from_sequence
@@ -21,10 +22,11 @@ from motion.registration.polish import (
     _Posture,
     _sample_map,
     capsule_outline,
+    part_groups,
     polish_posture,
 )
 from motion.registration.refine import place_poses
-from motion.registration.types import scaled_spec
+from motion.registration.types import Proportions, scaled_spec
 from motion.render import capsule_sdf
 from motion.synth import SynthConfig, synthesize
 
@@ -240,3 +242,134 @@ def test_keypoint_columns_that_name_no_joint_of_the_skeleton_are_left_out(scene)
     )
     more = polish_posture(scene.reference, video, scene.C, rotations, translation, 1.0, settings)
     torch.testing.assert_close(more.rotations, plain.rotations)
+
+
+# -- the student's proportions -------------------------------------------------------------
+
+#: bone offsets (the joint's offset from its parent) lengthened in the reshaped reference
+#: below, and the part whose length that is: the knee's offset is the thigh, and so on
+RESHAPED = {
+    "LeftLeg": ("thigh_l", 1.10),
+    "RightLeg": ("thigh_r", 1.10),
+    "LeftFoot": ("shin_l", 0.92),
+    "RightFoot": ("shin_r", 0.92),
+    "LeftForeArm": ("upper_arm_l", 0.93),
+    "RightForeArm": ("upper_arm_r", 0.93),
+    "LeftHand": ("forearm_l", 1.06),
+    "RightHand": ("forearm_r", 1.06),
+}
+
+
+def _reshaped_reference(tmp_path_factory) -> Reference:
+    """The bundled walk with the bones of :data:`RESHAPED` scaled in the file itself (its
+    unit kept), read as an independent reference."""
+    bvh = read_bvh(REFERENCE)
+    offsets = bvh.offsets.copy()
+    for joint, (_, factor) in RESHAPED.items():
+        offsets[bvh.names.index(joint)] *= factor
+    path = tmp_path_factory.mktemp("reshaped") / "reshaped.bvh"
+    write_bvh(dataclasses.replace(bvh, offsets=offsets), path)
+    unit = Reference.from_bvh(REFERENCE).skeleton.metres_per_unit
+    return Reference.from_bvh(path, metres_per_unit=unit)
+
+
+def _reshaped_scales(reference: Reference, invert: bool) -> torch.Tensor:
+    """``(P,)`` the part factors of :data:`RESHAPED` (``invert``: their inverses)."""
+    scales = torch.ones(reference.spec.num_parts, dtype=torch.float64)
+    for part, factor in RESHAPED.values():
+        scales[reference.spec.part_names.index(part)] = 1 / factor if invert else factor
+    return scales
+
+
+def test_part_scales_lengthen_the_bones_as_the_file_would(scene, tmp_path_factory):
+    """The reference's posture with part factors (Proportions.joint_scales, scaled_spec)
+    equals that of a BVH file whose offsets were scaled by hand: every joint, and every
+    capsule axis (one bone per limb part, so exactly)."""
+    reshaped = _reshaped_reference(tmp_path_factory)
+    reference = scene.reference
+    proportions = Proportions.of(reference, _reshaped_scales(reference, invert=False))
+    rotations = reference.rotations[:5]
+    ours = reference.posture_frames(rotations, 1.0, proportions.joint_scales())
+    theirs = reshaped.posture_frames(rotations)
+    torch.testing.assert_close(ours.positions, theirs.positions, atol=1e-9, rtol=0)
+    spec = scaled_spec(reference.spec, 1.0, proportions.part_scales)
+    torch.testing.assert_close(
+        spec.shapes.axis.norm(dim=-1), reshaped.spec.shapes.axis.norm(dim=-1), atol=1e-9, rtol=0
+    )
+    joint = reference.skeleton.names.index
+    scales = proportions.joint_scales()
+    assert float(scales[joint("LeftLeg")]) == pytest.approx(1.10)  # the knee: the thigh
+    assert float(scales[joint("LeftUpLeg")]) == 1.0  # the hip joint: the pelvis
+
+
+@pytest.fixture(scope="module")
+def large_scene() -> Scene:
+    """As :func:`scene`, at 320 x 240 pixels (focal 400), 16 frames."""
+    cfg = SynthConfig(fps=12, warp=0.0, yaw_deg=90.0, cameras=2, size=[320, 240], focal_px=400)
+    seq = synthesize(REFERENCE, cfg)
+    reference = Reference.from_bvh(REFERENCE)
+    video = features_from_sequence(seq, keypoints=True, noisy=False, image=False)
+    video = video.cut(slice(0, 16))
+    shown = torch.from_numpy(seq.arrays["C_shown"]).long()[:16]
+    yaw = torch.from_numpy(seq.arrays["T_yaw_rad"])[:16]
+    turn = rotation_vector_to_matrix(torch.stack([0 * yaw, yaw, 0 * yaw], -1))
+    rotations = reference.rotations[shown].clone()
+    rotations[:, 0] = turn @ rotations[:, 0]
+    joints = torch.from_numpy(seq.arrays["joints3d"])[:16].double()
+    height = float((joints[..., 1].amax(-1) - joints[..., 1].amin(-1)).mean())
+    return Scene(reference, video, shown, rotations, joints[:, 0].clone(), joints, height)
+
+
+def test_a_students_other_proportions_are_recovered(large_scene, tmp_path_factory):
+    """The video shows the bundled walker; the reference is the same walk with thighs 10 %
+    longer, shins 8 % shorter, upper arms 7 % shorter and forearms 6 % longer. From 2
+    cameras' silhouettes and 2-D joints, at the polish's defaults, every part's factor comes
+    out within 3 % of the truth (the inverse factors; 1 for the others)."""
+    reshaped = _reshaped_reference(tmp_path_factory)
+    s = large_scene
+    out = polish_posture(
+        reshaped, s.video, s.C, s.rotations, s.translation, 1.0, PosturePolishSettings(steps=0)
+    )
+    truth = _reshaped_scales(reshaped, invert=True)
+    assert out.proportions.measured
+    error = (out.proportions.part_scales / truth - 1).abs()
+    assert float(error.max()) < 0.03, dict(
+        zip(reshaped.spec.part_names, error.tolist(), strict=True)
+    )
+    # proportion_steps=0: the reference's proportions, not measured
+    none = polish_posture(
+        reshaped,
+        s.video,
+        s.C,
+        s.rotations,
+        s.translation,
+        1.0,
+        PosturePolishSettings(steps=0, proportion_steps=0),
+    )
+    assert not none.proportions.measured
+    assert torch.equal(none.proportions.part_scales, torch.ones_like(truth))
+
+
+def test_without_2d_joints_the_proportions_are_not_measured(scene):
+    obs = dataclasses.replace(scene.video.observation, keypoints=None)
+    video = dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
+    out = polish_posture(
+        scene.reference,
+        video,
+        scene.C,
+        scene.rotations,
+        scene.translation,
+        1.0,
+        PosturePolishSettings(steps=1),
+    )
+    assert not out.proportions.measured
+    assert out.proportions.as_dict() == {n: 1.0 for n in scene.reference.spec.part_names}
+
+
+def test_part_groups_pair_left_and_right():
+    names = ["pelvis", "thigh_l", "thigh_r", "head", "hand_r"]
+    groups, index = part_groups(names, symmetric=True)
+    assert groups == ["pelvis", "thigh", "head", "hand"]
+    assert index.tolist() == [0, 1, 1, 2, 3]
+    groups, index = part_groups(names, symmetric=False)
+    assert groups == names and index.tolist() == [0, 1, 2, 3, 4]
