@@ -312,8 +312,7 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         refine_c=cfg.refine_c,
         # C's band: 24 reference frames either side (RefineSettings: 12). Stage 1 can stall a
         # few frames where the legs pass and leave the truth ~24 frames off; the narrower band
-        # could not reach it. Seed 0, same cost: 1 camera C 3.4 -> 2.9, A 4.8 -> 4.5 degrees;
-        # 2 cameras unchanged (C 1.4, A 4.4).
+        # could not reach it (docs/decisions/004-tuning-evidence.md)
         band=min(24, (cfg.particles - 1) // 2),
     )
     return RegistrationSettings(

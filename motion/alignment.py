@@ -569,7 +569,7 @@ def coarse_to_fine_align(
     * **Tracking.** The two finest levels, whose rows (at most ``factor`` video frames apart)
       are close enough for the step bound to fix a periodic motion's rate (coarser levels'
       are not: rows half a cycle or more apart see every cycle alike, and tracking there
-      only widens the band: on a 2-minute walk, 2.9 times that level's cost evaluations),
+      only widens the band, multiplying that level's cost evaluations),
       extend their band along their own best partial paths (a forward pass in chunks of
       rows, ``beam`` cells around where each path, continued at its recent slope, goes: the
       best one, and the next best within ``prune``), so the band follows the motion instead
@@ -583,10 +583,10 @@ def coarse_to_fine_align(
     coarsest level L and ``2 T`` to choose g; the band widens only where a level is
     ambiguous. Equal to the full solution on smooth warps, and on long periodic motion with
     distinguishing features (``margin=1``) or the same optimal cost without them (tested
-    against the full chain). Measured on a 5-minute walk against a reference repeating one
-    gait loop (7,500 x 36,000, ``benchmarks/bench_alignment.py``): 0.6 % of the pairs, every
-    frame in phase; classic subsampling (one sample per coarse cell, no tracking): 0.1 %, 79 %
-    in phase.
+    against the full chain). On a long walk against a reference repeating one gait loop it
+    evaluates a small fraction of the pairs and keeps every frame in phase, where classic
+    subsampling (one sample per coarse cell, no tracking) loses the phase on many frames
+    (``benchmarks/bench_alignment.py``; figures: docs/decisions/004-tuning-evidence.md).
 
     Args:
         cost_fn: ``cost_fn(rows (R,), cols (R, W)) -> (R, W)`` costs of video frames ``rows``
@@ -1037,10 +1037,10 @@ class _Levels:
         prior would be ``scale`` times weaker than the finest's against its costs: where
         those say little (cells of a cycle or more of a periodic motion all match), coarse
         paths would start anywhere and run at any slope, and the finer bands around them drop
-        or gain whole cycles to follow (a 2-minute walk against its loop repeated, warp seed
-        0: 48 % in phase, 91 % with the scaled prior; seeds 1 and 2: 78 -> 72 % and 85 -> 76 %,
-        where the path changes copy of the loop at places the pair costs hardly tell from the
-        truth: docs/experiments.md, "A long input")."""
+        or gain whole cycles to follow. On a long walk against its loop repeated the scaled
+        prior keeps more frames in phase on one warp and a few fewer on others, where the
+        path changes copy of the loop at places the pair costs hardly tell from the truth
+        (docs/decisions/004-tuning-evidence.md; docs/experiments.md, "A long input")."""
         return None if self.step_cost is None else scale * self.step_cost
 
     def step_lp(self, scale: int) -> np.ndarray:

@@ -4,8 +4,9 @@ Batched solvers allocate many short-lived tensors of a few megabytes. glibc serv
 above 128 KiB with fresh ``mmap`` pages and unmaps them on free, so every such temporary is
 page-faulted in again, one 4 KiB page at a time -- on this project's machines that costs
 more than the arithmetic of an elementwise operation on it. Raising glibc's thresholds keeps
-freed blocks for reuse: 12-20 % faster batched pose solving here, and the same or better
-elsewhere. The process then keeps up to ``trim`` bytes of freed memory mapped.
+freed blocks for reuse, which speeds batched pose solving up and slows nothing else down
+(docs/decisions/004-tuning-evidence.md). The process then keeps up to ``trim`` bytes of
+freed memory mapped.
 """
 
 from __future__ import annotations

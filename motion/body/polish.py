@@ -80,7 +80,8 @@ def _soft_render(
     # The union's edge is where the nearest part's signed distance is 0: soften that, not
     # the parts one by one -- a soft union 1 - prod(1 - cover) reads above 1/2 outside
     # where parts overlap (at every joint), and the polish then pulls the parts apart
-    # (started at the truth, E_2D drifted 0.0060 against 0.0020 with this).
+    # (the fit started at the truth drifted further from it than with this;
+    # docs/decisions/004-tuning-evidence.md).
     sil = torch.sigmoid(-sdf.amin(dim=-2) / settings.sharpness)
     shape = (*sil.shape[:-1], h, w)
     if colours is None:
@@ -89,8 +90,8 @@ def _soft_render(
     # cover times what the parts in front leave through, normalised over the parts -- so at
     # a front part's edge (cover 1/2) the colours blend half and half, as a pixel whose
     # centre is on that edge is as likely one as the other. (A softmax over depth let a
-    # near part's colour spread past its edge, and started at the truth E_2D drifted 0.0045
-    # and E_3D 0.021 against 0.0018 and 0.003 with this.)
+    # near part's colour spread past its edge, and the fit started at the truth drifted
+    # further from it than with this; docs/decisions/004-tuning-evidence.md.)
     cover = torch.sigmoid(-sdf / settings.sharpness)
     z = parts.depth[..., 0:1] + t * (parts.depth[..., 1:2] - parts.depth[..., 0:1])
     order = z.detach().argsort(dim=-2)  # nearest first, per pixel

@@ -7,15 +7,9 @@ bundled one (MediaPipe Pose, weights inside its wheel, so it runs offline);
 ``motion register`` reads as it reads any detector's files
 (:func:`motion.registration.keypoints.attach_keypoints`), cached for reruns.
 
-Measured on this project's real videos (2 cores, frames downscaled to 640 px wide, 100
-frames each; ``benchmarks/bench_perception.py --accuracy`` reruns every figure): MediaPipe
-Pose with its mask runs at 22 frames per second on the Pose2Sim trial's cam01 and 24 on the
-Sports2D demo (14-16 end to end, decoding the native frames included), where background
-subtraction alone runs at 83 and 300. Against the Pose2Sim trial's own OpenPose BODY_25B
-keypoints (4 cameras x 100 frames, the nearest OpenPose person, both confident) the median
-distance is 13.7 px without the hips in its 1080 x 1920 frames, about 1.7 % of the person's
-780 px height (shoulders 12-13, elbows 13-14, wrists 14-16, knees 13-14, ankles 13-14); the
-hips are 24 px apart (the two detectors place the hip joint differently).
+Its speed and its agreement with another detector on this project's real videos are in
+docs/decisions/001-person-detector.md and 004-tuning-evidence.md
+(``benchmarks/bench_perception.py --accuracy`` reruns every figure).
 """
 
 from motion.perception.detector import (

@@ -78,8 +78,7 @@ class PerceptionSettings(Settings):
     smooth: bool = setting(
         False,
         "the detector's own smoothing of the joints and mask over frames (it lags the "
-        "movement: on the Pose2Sim trial the joints are 1.3-1.5 px nearer OpenPose's without "
-        "it; registration has its own temporal prior)",
+        "movement, so the joints trail the person; registration has its own temporal prior)",
     )
     fuse_mask: bool = setting(
         True,

@@ -67,9 +67,9 @@ POLISH_TOL = 1e-12
 
 #: Starts of every pose solved from scratch: :func:`motion.pose.solve_pose`'s weak-perspective
 #: start and 3 rotated ones, plus the DLT's (which ``solve_pose`` tries only where a problem
-#: fits worse than its batch, never in a batch of one). On 7 nearly coplanar points at 2 px
-#: noise, 400 random poses, the weak-perspective start alone lands in a worse basin than the
-#: truth's for 1-2.5 % of them, all five starts for 0-0.25 %.
+#: fits worse than its batch, never in a batch of one). On nearly coplanar points the
+#: weak-perspective start alone sometimes lands in a worse basin than the truth's; the other
+#: starts make that rare (docs/decisions/004-tuning-evidence.md).
 STARTS = 4
 
 #: Default focal search of :func:`estimate_focal_and_pose`: focals from 0.3 to 5 times the

@@ -51,9 +51,9 @@ DEMO_SETTINGS = (
     # with a low threshold keeps the grey torso, which MOG2 would call a shadow
     "video.background=median",
     "video.threshold=12",
-    # the rendered capsule figure is not a photographed person: MediaPipe Pose finds it in 41
-    # of 50 frames of such a video, its joints 15 px median (17 % of the figure's height) off
-    # the truth, so the human-pose detector would mislead more than it observes
+    # the rendered capsule figure is not a photographed person: the human-pose detector
+    # misses it on some frames and misplaces its joints on others, so it would mislead more
+    # than it observes (docs/decisions/001-person-detector.md)
     "perception.detector=none",
 )
 

@@ -35,12 +35,14 @@ from motion.draw import write_video
 from motion.features import native_stderr_silenced
 from motion.perception.fusion import fuse_silhouettes
 from motion.perception.run import DetectionRun, detect_videos, masks_at
+from motion.registration.cameras import initialise_cameras
 from motion.registration.config import RegisterConfig, load_config, settings_dict
 from motion.registration.export import (
     TRUSTED_FIT,
     RegistrationSummary,
     joint_angles,
     joints_trusted,
+    proportion_words,
     save_registration,
     student_kinematics,
     summarise,
@@ -174,11 +176,20 @@ def _read_reference(path: Path) -> Reference:
 
 
 def _read_rig(path: Path | None, videos: list[Path]) -> CameraRig | None:
-    """The calibration's cameras, one per video (checked here, naming the file, before any
-    video is decoded)."""
+    """The calibration's cameras, one per video, checked here before any video is decoded:
+    the file as it reads (:func:`motion.cameras.load_pose2sim_calibration`), the rig as stage
+    0 checks a given calibration (:func:`motion.registration.cameras.initialise_cameras`,
+    route 1: intrinsics, rotations, finite values, image sizes, unique names), then one
+    camera per video; every error a line naming the file. Whether each video's frame size
+    matches its camera's ``size`` is checked when the videos are read
+    (:func:`motion.features.read_camera_videos`, naming the video)."""
     if path is None:
         return None
     rig = load_pose2sim_calibration(path)
+    try:
+        rig = initialise_cameras(rig).rig
+    except RegistrationError as err:
+        raise RegistrationError(f"{path}: {err}") from None
     if rig.num_cameras != len(videos):
         raise RegistrationError(
             f"{path}: the calibration has {rig.num_cameras} camera(s) ({', '.join(rig.names)}) "
@@ -460,8 +471,12 @@ def _fused(
 
 def _size_words(s: RegistrationSummary) -> str:
     if s.G_measured:
-        return f"body size G {s.G:.3f}"
-    return "body size not measured (one perspective camera cannot tell it from depth)"
+        words = f"body size G {s.G:.3f}"
+    else:
+        words = "body size not measured (one perspective camera cannot tell it from depth)"
+    if s.proportions:
+        words += "; proportions: " + (proportion_words(s.proportions) or "the reference's")
+    return words
 
 
 def summary_lines(outcome: RegisterOutcome) -> list[str]:

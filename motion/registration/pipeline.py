@@ -2,9 +2,13 @@
 
 ``register(reference, video)`` -> :class:`~motion.registration.types.Registration`:
 
-* stage 0 -- the cameras (given with the features, or from :mod:`motion.registration.cameras`)
-  and the body scale G (:func:`~motion.registration.approximate.estimate_body_scale`, or
-  given);
+* stage 0 -- the cameras, as given (``video.cameras``, or ``cameras``; ``motion register``
+  checks a calibration with :func:`~motion.registration.cameras.initialise_cameras`, or gives
+  one video without one a nominal field of view,
+  :data:`~motion.registration.video.FIELD_OF_VIEW_DEG`; the routes from 2D-3D
+  correspondences in :mod:`motion.registration.cameras` are for library users who have them,
+  not used by the command), and the body scale G
+  (:func:`~motion.registration.approximate.estimate_body_scale`, or given);
 * stage 1 -- approximate registration: per candidate pair the best rigid T, then C by the
   monotone chain, coarse to fine (:func:`~motion.registration.approximate.
   approximate_registration`);
@@ -33,7 +37,7 @@ from torch import Tensor
 from motion.body.observation import PartShapes, body_layers
 from motion.cameras import CameraRig
 from motion.registration.approximate import (
-    SCALE_NOT_ESTIMATED,
+    BodyScale,
     Stage1Result,
     Stage1Settings,
     approximate_registration,
@@ -195,9 +199,10 @@ def register(
 
     t0 = time.perf_counter()
     if s.scale is None:
-        scale, notes["G"] = estimate_body_scale(reference, video, s.stage1, generator)
+        body = estimate_body_scale(reference, video, s.stage1, generator)
     else:
-        scale, notes["G"] = float(s.scale), "given"
+        body = BodyScale(float(s.scale), measured=True, note="given")
+    scale, notes["G"] = body.value, body.note
     timings["stage0"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -248,11 +253,13 @@ def register(
     timings["polish"] = time.perf_counter() - t0
     if s.polish.steps:
         notes["polish"] = f"loss {polished.loss_start:.1f} -> {polished.loss_end:.1f} nats"
+    proportions = polished.proportions
     a = reference.rotations[c].transpose(-1, -2) @ rotations
     a[:, 0] = torch.eye(3, dtype=a.dtype)
-    spec = scaled_spec(reference.spec, scale)
+    spec = scaled_spec(reference.spec, scale, proportions.part_scales)
     shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
-    poses = place_poses(rotations[:, 0], translation, reference.posture_poses(rotations, scale))
+    posture = reference.posture_poses(rotations, scale, proportions.joint_scales())
+    poses = place_poses(rotations[:, 0], translation, posture)
     fit = silhouette_iou(
         shapes, video.cameras, video.observation.silhouette[0], poses.to(refined.poses)
     )
@@ -268,6 +275,7 @@ def register(
         timings=timings,
         notes=notes,
         warnings=warnings,
-        G_measured=not notes["G"].startswith(SCALE_NOT_ESTIMATED),
+        G_measured=body.measured,
         part_spread_deg=refined.part_spread_deg,
+        proportions=proportions if proportions.measured else None,
     )

@@ -107,14 +107,13 @@ class RefineSettings(Settings):
     meaning, :func:`motion.settings.setting`; checked when built, a bad value raising
     :class:`RefineSettingsError`).
 
-    Measured effects (docs/experiments.md): the heavy-tailed articulation prior
-    (``articulation_outlier``), against a Gaussian one (0.2 rad, ``articulation_outlier=0``),
-    on the synthetic walk, two cameras, seed 0: A 4.4 -> 2.8 degrees, C 1.85 -> 1.75; one
-    camera A 4.6 -> 3.0. ``reanchor=False`` (by the start T throughout), synthetic walk, one
-    camera: T 22 vs 9 degrees, C 9.4 vs 4.4 frames. The tempo alignment (``tempo_std``),
-    synthetic walk, one camera, seeds 0 / 1: C 3.74 / 3.40 -> 2.32 / 2.86 reference frames.
-    The smoothing (``smooth_s``), synthetic walk, seed 0: A from 8.0 to 4.9 degrees with one
-    camera, 7.4 to 4.8 with two, T 10.2 to 7.2 / 4.8 to 3.6 degrees.
+    Why four of the defaults are on (their measured effects:
+    docs/decisions/004-tuning-evidence.md): the heavy-tailed articulation prior
+    (``articulation_outlier``) lets a few joints differ a lot, as a student's do, where a
+    Gaussian one pulls every joint a little; ``reanchor`` stops stage 1's T errors from
+    persisting through the rounds; the tempo alignment (``tempo_std``) stops C wandering
+    where the images hardly tell frames apart; the smoothing (``smooth_s``) removes the
+    particles' frame-to-frame sampling noise from A and T.
 
     Checked together: ``overlap < window``; ``articulation_outlier_std >
     articulation_std`` where ``articulation_outlier`` is not 0; with ``refine_c``, C's band

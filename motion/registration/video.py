@@ -425,7 +425,8 @@ def _follow(
 
 
 #: files with more frames than this are sampled for the background by seeking (each seek
-#: decodes from a key frame), shorter ones by decoding through (about 4 ms a 1080p frame)
+#: decodes from a key frame), shorter ones by decoding through (exact, but its cost grows
+#: with the file's length, hence the bound)
 _SEEK_BEYOND = 3000
 
 

@@ -56,11 +56,11 @@ heading prior), :mod:`~motion.registration.approximate.scale` (stage 0's body sc
 from motion.registration.approximate.cost import pair_costs
 from motion.registration.approximate.pairs import PairFit, fit_rigid_pairs
 from motion.registration.approximate.registration import Stage1Result, approximate_registration
-from motion.registration.approximate.scale import SCALE_NOT_ESTIMATED, estimate_body_scale
+from motion.registration.approximate.scale import BodyScale, estimate_body_scale
 from motion.registration.approximate.settings import Stage1Settings
 
 __all__ = [
-    "SCALE_NOT_ESTIMATED",
+    "BodyScale",
     "PairFit",
     "Stage1Result",
     "Stage1Settings",

@@ -298,7 +298,7 @@ class _Batch:
         res = sw * near.clamp(0).minimum(cut)
         if jac:
             # the nearest part's index: parts - 1e6 (sd - near) peaks there (float arithmetic;
-            # argmin over a leading dimension is ~100x slower than amin here)
+            # argmin over a leading dimension is far slower than amin here)
             parts = torch.arange(p, dtype=sd.dtype)[:, None, None]
             k = torch.addcmul(parts, sd - near.unsqueeze(1), torch.tensor(-1e6, dtype=sd.dtype))
             k = k.amax(1).round_().long().clamp_(0, p - 1)  # (C, M, n)

@@ -1,7 +1,7 @@
-"""Stage 0's body size ``G`` (:func:`estimate_body_scale`): rigid fits at ``G = 1``, then a
-scale factor refined with ``T`` at each sampled video frame's best pair, the median over
-frames; only where size is observable (orthographic cameras, or two or more calibrated
-perspective cameras), else ``G = 1`` and a note starting :data:`SCALE_NOT_ESTIMATED`.
+"""Stage 0's body size ``G`` (:func:`estimate_body_scale` -> :class:`BodyScale`): rigid fits
+at ``G = 1``, then a scale factor refined with ``T`` at each sampled video frame's best pair,
+the median over frames; only where size is observable (orthographic cameras, or two or more
+calibrated perspective cameras), else ``G = 1`` with ``measured=False`` and a note saying why.
 
 ``G`` is the student's size relative to the reference (1: the same); metres, radians.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -20,8 +21,22 @@ from motion.registration.approximate.settings import Stage1Settings, _settings
 from motion.registration.approximate.starts import _as_pair_init
 from motion.registration.types import Reference, RegistrationError, VideoFeatures
 
-#: how the note of :func:`estimate_body_scale` starts when G could not be estimated
-SCALE_NOT_ESTIMATED = "G = 1.0 (not estimated)"
+
+@dataclass(frozen=True)
+class BodyScale:
+    """Stage 0's body size and how it was obtained.
+
+    Attributes:
+        value: ``G``, the student's size relative to the reference (1: the same; unitless).
+        measured: ``True`` where ``G`` was measured from the video, or given (the pipeline's
+            ``RegistrationSettings.scale``); ``False`` where it is 1 because the cameras
+            cannot observe size (one perspective camera confounds size and depth).
+        note: one line saying how ``G`` was obtained, for reports.
+    """
+
+    value: float
+    measured: bool
+    note: str
 
 
 def estimate_body_scale(
@@ -30,14 +45,13 @@ def estimate_body_scale(
     settings: Stage1Settings | None = None,
     generator: torch.Generator | None = None,
     frames: int = 8,
-) -> tuple[float, str]:
+) -> BodyScale:
     """Body size G from ``frames`` video frames spread evenly over the video.
 
     Frames spread over the whole video, rather than its first ones, sample different
     postures: where the student's articulation or a wrong best reference frame biases one
     frame's fit, its neighbours share that bias and a median of consecutive frames keeps it
-    (the synthetic walk, 2 cameras, true G = 1, warp seeds 0/1/2: the first 8 frames gave
-    0.975 / 1.006 / 1.000, 8 spread frames 1.006 / 0.997 / 0.998).
+    (docs/decisions/004-tuning-evidence.md).
 
     Each frame is fitted (``T`` at G = 1) against ``settings.scale_reference_frames``
     reference frames evenly spaced over the motion, then against every reference frame
@@ -45,10 +59,11 @@ def estimate_body_scale(
     (``settings.scale_rounds`` times, each at the previous estimate); G is the median over
     frames. Only where the scale is observable: orthographic
     cameras (pixels per metre are known) or two or more calibrated perspective cameras. With
-    one perspective camera size and depth are confounded: G = 1 and a note saying so.
+    one perspective camera size and depth are confounded: G = 1, not measured, and a note
+    saying so.
 
     Returns:
-        ``(G, note)``: the scale and how it was obtained (for reports).
+        :class:`BodyScale`: G, whether it was measured, and how it was obtained (for reports).
 
     Raises:
         RegistrationError: bad input, ``frames < 1``.
@@ -63,8 +78,10 @@ def estimate_body_scale(
     _check_inputs(reference, video, 1.0)
     rig = video.cameras
     if not rig.orthographic and rig.num_cameras < 2:
-        return 1.0, (
-            f"{SCALE_NOT_ESTIMATED}: one perspective camera cannot tell body size from depth"
+        return BodyScale(
+            1.0,
+            measured=False,
+            note="G = 1.0 (not estimated): one perspective camera cannot tell body size from depth",
         )
     nf = min(frames, video.num_frames)
     video = video.cut(torch.linspace(0, video.num_frames - 1, nf).round().long())
@@ -118,9 +135,10 @@ def estimate_body_scale(
         g_est = float(g_est * log_s.exp().median())
     spread = float(log_s.exp().std()) if nf > 1 else 0.0
     how = "orthographic cameras" if rig.orthographic else f"{rig.num_cameras} calibrated cameras"
-    return g_est, (
+    note = (
         f"G = {g_est:.3f} estimated from {how}: median over {nf} video frames spread evenly "
         f"over the video of a rigid fit with free scale at each frame's best reference frame (of {len(ref)} evenly "
         "spaced, then their neighbours) "
         f"(relative spread {spread:.3f})"
     )
+    return BodyScale(g_est, measured=True, note=note)

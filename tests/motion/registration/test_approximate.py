@@ -377,13 +377,13 @@ def test_approximate_registration_recovers_a_warped_walk(reference, walk):
 def test_body_scale_from_two_cameras_and_not_from_one(reference, walk_two_cameras):
     """G = 1.1 from two calibrated cameras within 3 % (measured 1.083-1.096 over seeds);
     one perspective camera confounds size and depth: G = 1 and a note saying so."""
-    g, note = estimate_body_scale(
+    two = estimate_body_scale(
         reference, _video(walk_two_cameras), Stage1Settings(), torch.Generator().manual_seed(0)
     )
-    assert abs(g / 1.1 - 1) < 0.03, note
-    assert "2 calibrated cameras" in note
-    g1, note1 = estimate_body_scale(reference, _video(walk_two_cameras, cameras=[0]))
-    assert g1 == 1.0 and "one perspective camera" in note1
+    assert abs(two.value / 1.1 - 1) < 0.03, two.note
+    assert two.measured and "2 calibrated cameras" in two.note
+    one = estimate_body_scale(reference, _video(walk_two_cameras, cameras=[0]))
+    assert one.value == 1.0 and not one.measured and "one perspective camera" in one.note
 
 
 # -- reproducibility ---------------------------------------------------------------------------

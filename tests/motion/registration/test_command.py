@@ -11,6 +11,7 @@ import itertools
 import json
 import math
 import os
+import re
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -346,6 +347,14 @@ def bad(student_video, tmp_path_factory) -> dict[str, Path]:
     cam2 = cam1.replace("[cam1]", "[cam2]").replace('"cam1"', '"cam2"')
     files["two_cameras.toml"] = d / "two_cameras.toml"
     files["two_cameras.toml"].write_text(f"{cam1}{cam2}[metadata]{metadata}", encoding="utf-8")
+    # the loader refuses a non-finite K; stage 0's check of the rig, two cameras of one name
+    files["nan_matrix.toml"] = d / "nan_matrix.toml"
+    files["nan_matrix.toml"].write_text(re.sub(r"matrix = \[\[[^,]+", "matrix = [[nan", text))
+    same = cam1.replace("[cam1]", "[cam2]")
+    files["same_names.toml"] = d / "same_names.toml"
+    files["same_names.toml"].write_text(f"{cam1}{same}[metadata]{metadata}", encoding="utf-8")
+    files["big_size.toml"] = d / "big_size.toml"  # the video is 96 x 72 px
+    files["big_size.toml"].write_text(re.sub(r"size = \[[^]]*\]", "size = [192.0, 144.0]", text))
     files["a_file"] = d / "a_file"
     files["a_file"].write_text("a regular file\n")
     reference = read_bvh(REFERENCE)  # 344 frames at 120 Hz: 2.9 s, the video 2.7 s
@@ -455,6 +464,24 @@ BAD = {
         "no_matrix.toml",
         "has no 'matrix'",
         False,
+    ),
+    "calibration with a non-finite K": (
+        lambda s, b: {"calibration": b["nan_matrix.toml"]},
+        "nan_matrix.toml",
+        "camera [cam1] 'matrix' must be finite; got [[nan,",
+        False,
+    ),
+    "calibration whose cameras share a name": (
+        lambda s, b: {"calibration": b["same_names.toml"]},
+        "same_names.toml",
+        "camera names must be unique; repeated: ['cam1']",
+        False,
+    ),
+    "calibration of another image size than the video": (
+        lambda s, b: {"calibration": b["big_size.toml"]},
+        "cam1.avi",
+        "frames are 96 x 72 px but the calibration says 192 x 144",
+        True,
     ),
     "calibration of another camera count": (
         lambda s, b: {"calibration": b["two_cameras.toml"]},

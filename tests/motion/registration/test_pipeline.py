@@ -43,7 +43,8 @@ def _blank(video, frames):
 def test_register_returns_every_frame_and_carries_unseen_ones(short):
     """Frames 10-12 blanked (the person out of view): every frame still gets C, T and A of
     the right shapes, C is monotone and the blanked frames' C lies between their
-    neighbours'; the result says how many frames were unseen."""
+    neighbours'; the result says how many frames were unseen, and that one camera did not
+    measure G."""
     seq, ref, video = short
     result = register(ref, _blank(video, slice(10, 13)), settings=QUICK)
     assert isinstance(result, Registration)
@@ -53,6 +54,9 @@ def test_register_returns_every_frame_and_carries_unseen_ones(short):
     assert bool((result.C[1:] >= result.C[:-1]).all())
     assert result.C_stage1[9] <= result.C_stage1[11] <= result.C_stage1[13]
     assert result.notes["unseen_frames"] == "3"
+    # one perspective camera: G stays 1, not measured, and the note says why
+    assert result.G == 1.0 and not result.G_measured
+    assert result.notes["G"].startswith("G = 1.0 (not estimated)")
     eye = torch.eye(3, dtype=result.A.dtype)
     torch.testing.assert_close(result.A[:, 0], eye.expand(n, 3, 3))
     assert {"stage0", "stage1", "stages23"} <= set(result.timings)
