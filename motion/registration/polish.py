@@ -309,16 +309,22 @@ def _losses(
     posture, targets = problem.posture, problem.targets
     if part_scales is None:
         part_scales = problem.proportions.part_scales
-    spec = scaled_spec(problem.spec, 1.0, part_scales)
     rotations = posture.rotations(joints, root)
     # once per step, for the silhouettes and the joints
     fk = posture.frames(rotations, problem.proportions.joint_scales(part_scales))
+    # the silhouettes move the posture, never the proportions: where a clothed body's outline
+    # lies says nothing of where its joints are (a coat lengthens no trunk)
+    seen_scales, seen_fk = part_scales, fk
+    if part_scales.requires_grad:
+        seen_scales = part_scales.detach()
+        seen_fk = posture.frames(rotations, problem.proportions.joint_scales(seen_scales))
+    spec = scaled_spec(problem.spec, 1.0, seen_scales)
     moved = problem.translation + shift
     terms: dict[str, Tensor] = {}
     if s.silhouette > 0:
         # float32 from here: the signed distances of every sampled pixel to every capsule
         # are the polish's bulk (float64 took twice as long for the same result)
-        segments = posture.segments(spec, rotations, moved, fk).float()
+        segments = posture.segments(spec, rotations, moved, seen_fk).float()
         parts = project_parts(problem.rig, segments, spec.shapes.radii.to(segments))
         # the body's outline, outside the silhouette
         outline = capsule_outline(parts.ends, parts.radii, s.outline_points)  # (n,C,P,S,2)

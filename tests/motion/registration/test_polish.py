@@ -373,3 +373,20 @@ def test_part_groups_pair_left_and_right():
     assert index.tolist() == [0, 1, 1, 2, 3]
     groups, index = part_groups(names, symmetric=False)
     assert groups == names and index.tolist() == [0, 1, 2, 3, 4]
+
+
+def test_the_silhouettes_never_move_the_proportions(scene, tmp_path_factory):
+    """With the 2-D joints' weight at 0 the proportions' fit sees only the silhouettes and
+    the prior: the silhouettes move the posture, not the part lengths (a coat lengthens no
+    trunk), so every factor stays exactly 1, even against a reshaped reference."""
+    reshaped = _reshaped_reference(tmp_path_factory)
+    out = polish_posture(
+        reshaped,
+        scene.video,
+        scene.C,
+        scene.rotations,
+        scene.translation,
+        1.0,
+        PosturePolishSettings(steps=0, keypoints=0.0, proportion_steps=20),
+    )
+    assert torch.equal(out.proportions.part_scales, torch.ones(reshaped.spec.num_parts).double())
