@@ -18,7 +18,8 @@ fraction of height), ``a_err_deg_mean`` (articulation error over the joints the 
 drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of height),
 ``silhouette_iou_mean``; ``motions_match`` (1: :func:`motion.registration.movement.
 check_movement` finds the reference's movement, as ``motion register`` reports it) with its
-evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``; ``a_swing_err_deg_mean`` is the articulation error without the
+evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``, ``c_held_fraction``
+(video frames at the ends holding C's first or last reference frame, left out of the check); ``a_swing_err_deg_mean`` is the articulation error without the
 twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
 ``a_swing_err_deg_mean_no_change`` score the anchor "no articulation difference" (A =
 identity) the same way: the size of the true A, what a registration that recovers nothing
@@ -402,7 +403,7 @@ def run(cfg: RegisterSyntheticConfig):
         angles,
         video.frame_rate,
         {},
-        trusted=result.fit >= TRUSTED_FIT,
+        trusted=(result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames),
         movement=movement,
     )
     truth_diff = true_differences(reference, student, truth)
@@ -437,6 +438,7 @@ def run(cfg: RegisterSyntheticConfig):
         "travel_ratio": movement.student_travel_m / max(movement.reference_travel_m, 1e-9),
         "c_stalled_fraction": float((result.C.diff() == 0).double().mean()),
         "c_fast_fraction": movement.fast_fraction,
+        "c_held_fraction": (movement.held_start + movement.held_end) / n,
         **findings,
         "sec_per_video_frame": seconds / n,
         "sec_stage1": result.timings["stage1"],

@@ -267,10 +267,13 @@ def _write_outputs(
     rig = video.features.cameras
     angles = joint_angles(reg, reference, rate, video.start, video.step)
     seen = points_in_view(rig, student_kinematics(reg, reference).positions)
-    trusted = joints_trusted(angles, reference, seen) & (reg.fit >= TRUSTED_FIT)[:, None]
     movement = check_movement(
         reg.C, reg.T_translation, reference.root, reference.frame_rate, rate, reg.G, cfg.movement
     )
+    # a frame is trusted where its fit is good, the coordinate's bones are in view, and the
+    # reference has a counterpart (not an end held at C's first or last reference frame)
+    frames_trusted = (reg.fit >= TRUSTED_FIT) & ~movement.held(reg.num_frames)
+    trusted = joints_trusted(angles, reference, seen) & frames_trusted[:, None]
     summary = summarise(
         reg,
         reference,

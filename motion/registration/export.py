@@ -940,8 +940,8 @@ class RegistrationSummary:
             (:func:`motion.registration.movement.check_movement`); when not, no difference
             is stated (each of :attr:`largest_differences` has ``stated`` false and ``why``).
         warnings: sentences for the user, most important first: why the movements do not
-            match, then what the input or the inference could not do (frames carried over,
-            a video cut short).
+            match, then the video's ends that have no counterpart in the reference, then what
+            the input or the inference could not do (frames carried over, a video cut short).
         movement: the movement check's evidence (:class:`MovementCheck` as a dict).
         proportions: the student's length factor of each body part on top of G
             (:class:`~motion.registration.types.Proportions`; 1: the reference's proportions),
@@ -1102,6 +1102,10 @@ def summarise(
         notes={k: str(v) for k, v in reg.notes.items()},
         settings=dict(settings),
         motions_match=matches,
-        warnings=[*(movement.reasons if movement is not None else []), *reg.warnings],
+        warnings=[
+            *(movement.reasons if movement is not None else []),
+            *(movement.warnings if movement is not None else []),
+            *reg.warnings,
+        ],
         movement=movement.to_dict() if movement is not None else {},
     )

@@ -19,6 +19,12 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   (its rate over the video's, times the fitted speed), a C that stands still on a fifth of
   the frames is stop-and-go: the chain held on to one posture because none of the next ones
   fitted.
+* **Held ends.** A run of video frames at the start or the end that all match the first (last)
+  reference moment C reaches is no stall: the video goes on where the reference's movement
+  has not begun or has ended (another performer walks on past the stretch of the reference
+  his phase matches), or the student waits. Such frames have no counterpart in the
+  reference: they are left out of every check (up to ``max_held`` of the video; beyond that
+  they count as stalls), no finding rests on them, and a warning says so.
 * **Racing.** Advancing by twice the reference's own rate or more (reference frames per
   video frame over the ratio of the frame rates) on a quarter of the frames, the student
   moves twice as fast as the reference there: another tempo of movement, or another one (a
@@ -41,7 +47,7 @@ from torch import Tensor
 
 from motion.settings import Settings, setting
 
-__all__ = ["MovementCheck", "MovementSettings", "check_movement"]
+__all__ = ["MovementCheck", "MovementSettings", "check_movement", "held_ends"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +101,14 @@ class MovementSettings(Settings):
     max_fast: float = setting(
         0.25, "largest fraction of the video's frames on which C may race", gt=0, le=1
     )
+    max_held: float = setting(
+        0.4,
+        "largest fraction of the video's frames, at its start and end together, that may hold "
+        "C's first or last reference frame and be left out of the checks and the findings "
+        "(beyond it they count as stalls)",
+        ge=0,
+        lt=1,
+    )
 
 
 @dataclass(frozen=True)
@@ -111,6 +125,10 @@ class MovementCheck:
         fast_fraction: video frames where C advances at ``fast_step_factor`` times the
             reference's rate or more.
         speed_ratio: reference seconds per video second (least-squares slope of C).
+        held_start, held_end: video frames at the start (end) that hold C's first (last)
+            reference frame before (after) the one that matches it, left out of the checks
+            (0 when the held frames exceed ``max_held``; then they count as stalls).
+        warnings: sentences for the user about the held frames (empty when none).
     """
 
     motions_match: bool
@@ -120,9 +138,48 @@ class MovementCheck:
     stalled_fraction: float | None = None
     fast_fraction: float = math.nan
     speed_ratio: float = math.nan
+    held_start: int = 0
+    held_end: int = 0
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def held(self, n: int) -> Tensor:
+        """``(n,)`` bool: the held video frames of a registration of ``n`` frames."""
+        mask = torch.zeros(n, dtype=torch.bool)
+        mask[: self.held_start] = True
+        mask[n - self.held_end :] = True
+        return mask
+
+
+def held_ends(c: Tensor) -> tuple[int, int]:
+    """``(start, end)``: how many video frames at the start of ``c`` ``(T',)`` repeat its
+    first value before the last frame that has it, and at the end repeat its last value
+    after the first frame that has it (the zero steps of C's leading and trailing runs)."""
+    n = int(c.shape[0])
+    steps = (c[1:] != c[:-1]).nonzero().flatten()
+    if len(steps) == 0:  # C never moves: one run, all of it held
+        return n - 1, 0
+    return int(steps[0]), n - 2 - int(steps[-1])
+
+
+def _held_warnings(start: int, end: int, n: int, video_rate: float, c: Tensor) -> list[str]:
+    out = []
+    if start:
+        out.append(
+            f"the first {start} video frames ({start / video_rate:.2f} s) all match the "
+            f"reference's frame {int(c[0])}, where the matched stretch begins: the student "
+            "has not started the reference's movement there (or the reference begins later); "
+            "no finding rests on them"
+        )
+    if end:
+        out.append(
+            f"the last {end} video frames ({end / video_rate:.2f} s) all match the "
+            f"reference's frame {int(c[-1])}, where the matched stretch ends: the video goes on "
+            "past the reference's movement (or the student stops); no finding rests on them"
+        )
+    return out
 
 
 def _net_displacement(positions: Tensor, k: int) -> float:
@@ -155,9 +212,16 @@ def check_movement(
     """
     s = settings or MovementSettings()
     c = c.to(torch.long).cpu()
-    n = c.shape[0]
-    if n < 2:
+    if c.shape[0] < 2:
         return MovementCheck(True)
+    start, end = held_ends(c)
+    if start + end > s.max_held * c.shape[0] or c.shape[0] - start - end < 2:
+        start, end = 0, 0  # not an end held: stalls
+    full_length = c.shape[0]
+    core = slice(start, full_length - end)
+    c, translation = c[core], translation[core]
+    n = c.shape[0]
+    held = _held_warnings(start, end, full_length, video_rate, c)
     steps = np.diff(c.numpy())
     slope = float(np.polyfit(np.arange(n, dtype=np.float64), c.numpy().astype(np.float64), 1)[0])
     speed = slope * video_rate / reference_rate
@@ -191,4 +255,4 @@ def check_movement(
             f"reference's pace or more on {100 * fast:.0f} % of the video's frames (at most "
             f"{100 * s.max_fast:.0f} % for the same movement)"
         )
-    return MovementCheck(not reasons, reasons, student, ref, stalled, fast, speed)
+    return MovementCheck(not reasons, reasons, student, ref, stalled, fast, speed, start, end, held)

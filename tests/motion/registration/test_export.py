@@ -656,6 +656,12 @@ def test_summary_speed_offset_and_json(reference):
         d["stated"] is False and d["why"] == "the student does not perform the reference's movement"
         for d in record["largest_differences"]
     )
+    # the same movement with a held end: its sentence after the reasons (none), before the rest
+    held = MovementCheck(True, [], held_end=4, warnings=["the last 4 video frames ..."])
+    record = json.loads(summarise(reg, reference, angles, 30.0, {}, movement=held).to_json())
+    assert record["motions_match"] is True
+    assert record["warnings"] == [*held.warnings, *reg.warnings]
+    assert record["movement"]["held_end"] == 4
 
 
 def test_trusted_angles_drop_untrusted_frames_and_one_frame_spikes():

@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from motion.registration.movement import MovementSettings, check_movement
+from motion.registration.movement import MovementSettings, check_movement, held_ends
 
 REF_RATE, VIDEO_RATE = 120.0, 25.0
 F64 = torch.float64
@@ -99,11 +99,12 @@ def test_a_reference_in_place_against_a_travelling_student_does_not_match():
 def test_stop_and_go_or_racing_c_does_not_match():
     root = _walking_reference(speed=0.0)
     steps = torch.full((49,), 5)
-    steps[::3] = 0  # a third of the frames stand still
+    steps[1::3] = 0  # a third of the frames stand still (inside C's range, not at its ends)
     c = torch.cat([torch.zeros(1, dtype=torch.long), steps.cumsum(0)])
     still = _check(c, root[c], root)
-    assert not still.motions_match and still.stalled_fraction == pytest.approx(17 / 49)
-    assert "stands still on 35 %" in still.reasons[0]
+    assert not still.motions_match and still.stalled_fraction == pytest.approx(16 / 49)
+    assert "stands still on 33 %" in still.reasons[0]
+    assert still.held_start == still.held_end == 0
     racing = torch.full((49,), 4)
     racing[::2] = 10  # 2.08 x the frame-rate ratio (4.8) on half the frames
     c = torch.cat([torch.zeros(1, dtype=torch.long), racing.cumsum(0)])
@@ -114,6 +115,46 @@ def test_stop_and_go_or_racing_c_does_not_match():
     slow = torch.cat([torch.zeros(1, dtype=torch.long), (torch.arange(49) % 2).cumsum(0)])
     at_rate = check_movement(slow, root[slow], root, REF_RATE, REF_RATE, 1.0)
     assert at_rate.stalled_fraction is None and at_rate.motions_match
+
+
+def test_held_ends_count_the_repeats_of_the_first_and_last_values():
+    assert held_ends(torch.tensor([5, 5, 5, 7, 9, 9, 9])) == (2, 2)
+    assert held_ends(torch.tensor([5, 6, 9])) == (0, 0)
+    assert held_ends(torch.tensor([4, 4, 4])) == (2, 0)  # one run: held at the start
+
+
+def test_a_walker_who_walks_on_past_the_references_end_matches():
+    """Another walker whose last 13 of 63 frames all match the reference's last matched
+    frame (he walks on past the stretch of the reference his phase matches, as the true
+    alignment of two CMU walks does): not stop-and-go. The held frames are left out of the
+    checks (travel compared over the matched stretch), reported in a warning, and marked."""
+    root = _walking_reference()
+    c = torch.cat([_warped_c(50), torch.full((13,), int(_warped_c(50)[-1]))])
+    walker = 1.1 * _walking_reference(2000)[: len(c) * 5 : 5]  # walks on throughout
+    walker = walker[: len(c)]
+    result = _check(c, walker, root)
+    assert result.motions_match, result.reasons
+    assert (result.held_start, result.held_end) == (0, 13)
+    assert result.stalled_fraction == 0.0
+    assert len(result.warnings) == 1 and "the last 13 video frames" in result.warnings[0]
+    assert result.held(len(c)).tolist() == [False] * 50 + [True] * 13
+    # counted as before, the same C is stop-and-go
+    strict = _check(c, walker, root, max_held=0.0)
+    assert not strict.motions_match and strict.stalled_fraction == pytest.approx(13 / 62)
+    assert strict.held_end == 0 and strict.warnings == []
+
+
+def test_held_ends_beyond_max_held_count_as_stalls():
+    """A C that holds its first value for 20 frames and its last for 20 of 60 is not a
+    movement played with a margin at each end: beyond max_held (0.4) the held frames are
+    stalls again, and a C that never moves is one stall."""
+    root = _walking_reference()
+    c = torch.cat([torch.full((20,), 30), _warped_c(20, start=30), torch.full((20,), 200)])
+    result = _check(c, root[c], root)
+    assert result.held_start == result.held_end == 0
+    assert not result.motions_match and "stands still" in " ".join(result.reasons)
+    frozen = _check(torch.full((30,), 40), root[:30], root)
+    assert frozen.held_start == frozen.held_end == 0
 
 
 def test_bad_settings_are_refused():
