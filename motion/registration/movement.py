@@ -109,6 +109,12 @@ class MovementSettings(Settings):
         ge=0,
         lt=1,
     )
+    held_warning_s: float = setting(
+        0.25,
+        "seconds: a held end at least this long gets a warning (a shorter one, a fraction of a "
+        "step, is left out of the checks and the findings silently)",
+        ge=0,
+    )
 
 
 @dataclass(frozen=True)
@@ -164,8 +170,12 @@ def held_ends(c: Tensor) -> tuple[int, int]:
     return int(steps[0]), n - 2 - int(steps[-1])
 
 
-def _held_warnings(start: int, end: int, n: int, video_rate: float, c: Tensor) -> list[str]:
+def _held_warnings(start: int, end: int, video_rate: float, c: Tensor, least_s: float) -> list[str]:
+    """The user's sentences on held ends of ``start`` and ``end`` frames (those of at least
+    ``least_s`` seconds) of a C ``c`` (its matched stretch)."""
     out = []
+    start = start if start / video_rate >= least_s else 0
+    end = end if end / video_rate >= least_s else 0
     if start:
         out.append(
             f"the first {start} video frames ({start / video_rate:.2f} s) all match the "
@@ -221,7 +231,7 @@ def check_movement(
     core = slice(start, full_length - end)
     c, translation = c[core], translation[core]
     n = c.shape[0]
-    held = _held_warnings(start, end, full_length, video_rate, c)
+    held = _held_warnings(start, end, video_rate, c, s.held_warning_s)
     steps = np.diff(c.numpy())
     slope = float(np.polyfit(np.arange(n, dtype=np.float64), c.numpy().astype(np.float64), 1)[0])
     speed = slope * video_rate / reference_rate

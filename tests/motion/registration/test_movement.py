@@ -123,6 +123,16 @@ def test_held_ends_count_the_repeats_of_the_first_and_last_values():
     assert held_ends(torch.tensor([4, 4, 4])) == (2, 0)  # one run: held at the start
 
 
+def test_a_short_held_end_is_left_out_without_a_warning():
+    """Two frames (0.08 s) holding C's first value: a fraction of a step, left out of the
+    checks and the findings, not worth a sentence (held_warning_s 0.25 s)."""
+    root = _walking_reference()
+    c = torch.cat([torch.full((2,), int(_warped_c()[0])), _warped_c()])
+    result = _check(c, root[c], root)
+    assert result.motions_match and (result.held_start, result.held_end) == (2, 0)
+    assert result.warnings == []
+
+
 def test_a_walker_who_walks_on_past_the_references_end_matches():
     """Another walker whose last 13 of 63 frames all match the reference's last matched
     frame (he walks on past the stretch of the reference his phase matches, as the true
