@@ -75,6 +75,8 @@ TIMINGS = ("sec_per_video_frame", "sec_stage1", "sec_stages23")
 #: a stated finding agrees with the truth when its sign is the true one and it is within this
 #: many degrees of the true mean difference over its frames (the issue's criterion)
 FINDING_AGREE_DEG = 5.0
+#: the parts whose length a limb's two detected joints span (the proportions' limb metric)
+LIMB_PARTS = ("upper_arm", "forearm", "thigh", "shin")
 
 
 @dataclass
@@ -116,9 +118,9 @@ class RegisterSyntheticConfig(ExperimentConfig):
         ge=0,
     )
     proportion_steps: int = setting(
-        100,
+        0,
         "steps of the polish's fit of the student's proportions, where there are 2-D joints "
-        "(motion register's default; 0: the reference's proportions)",
+        "(0, motion register's default: the reference's proportions; 100: fitted)",
         ge=0,
     )
     out_dir: str = setting("runs/register_synthetic", "output folder")
@@ -479,13 +481,18 @@ def proportion_errors(reference: Reference, student: Reference | None, result) -
     """The estimated part lengths (G times the proportions) against the truth, percent:
     ``scale_err_pct_mean`` / ``_max`` over the parts, and ``proportion_err_pct_mean`` /
     ``_max`` of their shape alone (both divided by their geometric mean: what one
-    perspective camera can tell, with the body's size traded against its depth); each with
+    perspective camera can tell, with the body's size traded against its depth), and
+    ``proportion_err_pct_mean_limbs`` over :data:`LIMB_PARTS` alone; each with
     its ``_no_change`` anchor (G alone, the reference's proportions); NaN-free."""
     truth = true_part_scales(reference, student)
     estimate = torch.full_like(truth, float(result.G))
     anchor = estimate.clone()
     if result.proportions is not None:
         estimate = estimate * result.proportions.part_scales.to(truth)
+    names = reference.spec.part_names
+    limbs = [
+        i for i, n in enumerate(names) if n.removesuffix("_l").removesuffix("_r") in LIMB_PARTS
+    ]
     out = {}
     for name, est in (("", estimate), ("_no_change", anchor)):
         ratio = est / truth
@@ -494,6 +501,11 @@ def proportion_errors(reference: Reference, student: Reference | None, result) -
         out[f"scale_err_pct_max{name}"] = float((ratio - 1).abs().max() * 100)
         out[f"proportion_err_pct_mean{name}"] = float((shape - 1).abs().mean() * 100)
         out[f"proportion_err_pct_max{name}"] = float((shape - 1).abs().max() * 100)
+        out[f"proportion_err_pct_mean_limbs{name}"] = float((shape[limbs] - 1).abs().mean() * 100)
+    parts = ", ".join(
+        f"{n} {float(e):.3f}/{float(t):.3f}" for n, e, t in zip(names, estimate, truth, strict=True)
+    )
+    note(f"part lengths, estimated (G x proportions) / true: {parts}")
     return out
 
 

@@ -24,7 +24,8 @@ gradient descent (Adam) on
 C and G stay as given; the frames are solved in chunks, each chunk's first frame tied to the
 previous chunk's last.
 
-Before the frames, where the video has 2-D joints, the **student's proportions** (the
+Before the frames, when turned on (``proportion_steps``) and the video has 2-D joints, the
+**student's proportions** (the
 proposal's G per bone: :class:`~motion.registration.types.Proportions`) are fitted: one
 length factor per body part (left and right sharing one), shared by every frame, on up to
 ``proportion_frames`` frames spread over the video together with their postures, under a
@@ -114,10 +115,13 @@ class PosturePolishSettings(Settings):
     )
     frames_per_chunk: int = setting(64, "video frames solved together", ge=2)
     proportion_steps: int = setting(
-        100,
+        0,
         "Adam steps of the proportions' fit: each body part's length on top of G, shared by "
-        "every frame, fitted on frames spread over the video before the frames are polished, "
-        "where the video has 2-D joints (0, or none: the reference's proportions)",
+        "every frame, fitted to the 2-D joints on frames spread over the video before the "
+        "frames are polished (0, or no 2-D joints: the reference's proportions). Off by "
+        "default: a detector's joints sit where its own convention puts them, and lengths "
+        "fitted to them measure that convention (docs/decisions/003-proportions.md); turn it "
+        "on for joints that are the skeleton's (markers, a matched detector); 100 is enough",
         ge=0,
         le=100000,
     )

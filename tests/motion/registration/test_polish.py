@@ -327,24 +327,17 @@ def test_a_students_other_proportions_are_recovered(large_scene, tmp_path_factor
     out within 3 % of the truth (the inverse factors; 1 for the others)."""
     reshaped = _reshaped_reference(tmp_path_factory)
     s = large_scene
-    out = polish_posture(
-        reshaped, s.video, s.C, s.rotations, s.translation, 1.0, PosturePolishSettings(steps=0)
-    )
+    fit = PosturePolishSettings(steps=0, proportion_steps=100)
+    out = polish_posture(reshaped, s.video, s.C, s.rotations, s.translation, 1.0, fit)
     truth = _reshaped_scales(reshaped, invert=True)
     assert out.proportions.measured
     error = (out.proportions.part_scales / truth - 1).abs()
     assert float(error.max()) < 0.03, dict(
         zip(reshaped.spec.part_names, error.tolist(), strict=True)
     )
-    # proportion_steps=0: the reference's proportions, not measured
+    # the default (proportion_steps=0): the reference's proportions, not measured
     none = polish_posture(
-        reshaped,
-        s.video,
-        s.C,
-        s.rotations,
-        s.translation,
-        1.0,
-        PosturePolishSettings(steps=0, proportion_steps=0),
+        reshaped, s.video, s.C, s.rotations, s.translation, 1.0, PosturePolishSettings(steps=0)
     )
     assert not none.proportions.measured
     assert torch.equal(none.proportions.part_scales, torch.ones_like(truth))
@@ -360,7 +353,7 @@ def test_without_2d_joints_the_proportions_are_not_measured(scene):
         scene.rotations,
         scene.translation,
         1.0,
-        PosturePolishSettings(steps=1),
+        PosturePolishSettings(steps=1, proportion_steps=100),
     )
     assert not out.proportions.measured
     assert out.proportions.as_dict() == {n: 1.0 for n in scene.reference.spec.part_names}
