@@ -9,8 +9,9 @@ A config file names its experiment and sets that experiment's fields::
       - {corrupt: false}
       - {corrupt: true}
 
-Every experiment accepts ``seed``, ``out_dir`` and ``tiny`` (a few frames, for tests; a sweep's
-entries are all checked but only its first and last run). A schema
+Every experiment accepts ``seed``, ``out_dir`` (default ``runs/<experiment>``) and ``tiny`` (a
+few frames, for tests; a sweep's entries are all checked but only its first and last run),
+declared once, on :class:`ExperimentConfig`. A schema
 is a dataclass deriving from :class:`ExperimentConfig` whose fields declare their type, range
 and meaning in one place (:func:`motion.settings.setting`). Files are read strictly
 (:mod:`motion.settings_yaml`, the reader of ``motion register --config`` too): YAML 1.2
@@ -30,10 +31,20 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from motion.settings import ConfigError, SettingError, Settings, coerce, echo, show, unknown_key
+from motion.settings import (
+    ConfigError,
+    SettingError,
+    Settings,
+    coerce,
+    echo,
+    setting,
+    show,
+    unknown_key,
+)
 from motion.settings_yaml import line_of, load_yaml, read_yaml
 
 __all__ = [
@@ -54,12 +65,32 @@ class ExperimentSkipped(RuntimeError):
     does not exist is a :class:`ConfigError` instead."""
 
 
+@dataclass
 class ExperimentConfig(Settings):
     """Base of the experiment schemas: fields checked at construction (raising
-    :class:`ConfigError`); ``TINY`` maps fields to the values ``tiny=true`` gives them."""
+    :class:`ConfigError`), ``seed``, ``out_dir`` and ``tiny`` declared here for every one.
+
+    A schema says, as class variables: ``NAME``, its experiment's name (``out_dir``'s
+    default is ``runs/<NAME>``); ``TINY``, the fields ``tiny=true`` reduces and their values;
+    ``TINY_DOC``, what ``tiny=true`` does, in words (``python -m experiments list`` shows it
+    as the meaning of ``tiny``).
+    """
 
     setting_error: ClassVar[type[SettingError]] = ConfigError
+    NAME: ClassVar[str] = ""
     TINY: ClassVar[dict[str, Any]] = {}
+    TINY_DOC: ClassVar[str] = ""
+
+    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    # None stands for runs/<NAME> (set by __post_init__) in Python only: a file's or the
+    # command line's value is checked as a string first, so an empty value is refused there
+    out_dir: str = setting(None, "output folder")
+    tiny: bool = setting(False, "a quick run (fewer frames, less work), for tests")
+
+    def __post_init__(self) -> None:
+        if self.out_dir is None:
+            object.__setattr__(self, "out_dir", f"runs/{self.NAME}")
+        super().__post_init__()
 
 
 # ------------------------------------------------------------------------------ overrides

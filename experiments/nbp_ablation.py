@@ -58,6 +58,11 @@ TIMINGS = tuple(f"sec_per_frame_{v}" for v in VARIANTS)
 class NbpAblationConfig(ExperimentConfig):
     """Fields of ``experiments/configs/nbp_ablation.yaml``."""
 
+    NAME = "nbp_ablation"
+    TINY_DOC = (
+        "a quick run: frames=2, particles_scale=0.2, variants=[full, occlusion_unaware, bpmc] "
+        "(values given on the command line win)"
+    )
     TINY: ClassVar[dict] = {
         "frames": 2,
         "particles_scale": 0.2,
@@ -73,13 +78,6 @@ class NbpAblationConfig(ExperimentConfig):
     )
     repeats: int = setting(
         1, "seeds per variant (seed, seed + 1, ...): rows show mean +- std", ge=1, le=20
-    )
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/nbp_ablation", "output folder")
-    tiny: bool = setting(
-        False,
-        "a quick run: frames=2, particles_scale=0.2, variants=[full, occlusion_unaware, bpmc] "
-        "(values given on the command line win)",
     )
 
 

@@ -26,6 +26,11 @@ class NbpNoiseSweepConfig(ExperimentConfig):
     """Fields of ``experiments/configs/nbp_noise_sweep.yaml`` (the rest as
     ``nbp_single_image``'s defaults)."""
 
+    NAME = "nbp_noise_sweep"
+    TINY_DOC = (
+        "a quick run: frames=2, particles=30, iterations=2, levels=[0, 30] (values given on "
+        "the command line win)"
+    )
     TINY: ClassVar[dict] = {"frames": 2, "particles": 30, "iterations": 2, "levels": [0.0, 30.0]}
 
     frames: int = setting(40, "frames taken evenly from the bundled walk", ge=1, le=10000)
@@ -33,13 +38,6 @@ class NbpNoiseSweepConfig(ExperimentConfig):
     iterations: int = setting(6, "iterations per annealing run", ge=1, le=100)
     levels: list[float] = setting(
         [0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0], "start noise levels, degrees", ge=0, le=90
-    )
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/nbp_noise_sweep", "output folder")
-    tiny: bool = setting(
-        False,
-        "a quick run: frames=2, particles=30, iterations=2, levels=[0, 30] (values given on "
-        "the command line win)",
     )
 
 

@@ -70,6 +70,11 @@ FOCAL = 300.0  # perspective focal length, pixels (motion.synth's default)
 class NbpSingleImageConfig(ExperimentConfig):
     """Fields of ``experiments/configs/nbp_single_image.yaml``."""
 
+    NAME = "nbp_single_image"
+    TINY_DOC = (
+        "a quick run: frames=2, particles=30, iterations=2, restarts=1 (values given on the "
+        "command line win)"
+    )
     TINY: ClassVar[dict] = {
         "frames": 2,
         "particles": 30,
@@ -128,13 +133,6 @@ class NbpSingleImageConfig(ExperimentConfig):
         "mixture",
         "particle proposal (mixture: neighbours propose through the connections; own: BPMC)",
         choices=("mixture", "own"),
-    )
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/nbp_single_image", "output folder")
-    tiny: bool = setting(
-        False,
-        "a quick run: frames=2, particles=30, iterations=2, restarts=1 (values given on the "
-        "command line win)",
     )
 
 

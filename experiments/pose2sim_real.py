@@ -34,6 +34,9 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 class Pose2simRealConfig(ExperimentConfig):
     """Fields of ``experiments/configs/pose2sim_real.yaml``."""
 
+    NAME = "pose2sim_real"
+    TINY_DOC = "the first 40 frames only, for tests"
+
     data: str = setting(
         str(SHARED),
         "the shared data folder (default: ../shared/data beside the checkout; the run is "
@@ -47,9 +50,6 @@ class Pose2simRealConfig(ExperimentConfig):
         0.3, "2-D detections below this confidence are ignored", ge=0, lt=1
     )
     max_step: int = setting(6, "S: most reference frames C advances per input frame", ge=1)
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/pose2sim_real", "output folder")
-    tiny: bool = setting(False, "the first 40 frames only, for tests")
 
 
 #: the files the run reads, relative to ``data``

@@ -87,6 +87,8 @@ TIMINGS = (
 class RegisterLongConfig(ExperimentConfig):
     """Fields of ``experiments/configs/register_long.yaml``."""
 
+    NAME = "register_long"
+    TINY_DOC = "a quick run (a few seconds of video, few particles)"
     TINY: ClassVar[dict] = {
         "minutes": 0.06,
         "particles": 16,
@@ -149,9 +151,6 @@ class RegisterLongConfig(ExperimentConfig):
         "busy processes more threads than free cores stall at every parallel region",
         ge=0,
     )
-    seed: int = setting(0, "seed of the registration's draws", ge=0)
-    out_dir: str = setting("runs/register_long", "output folder")
-    tiny: bool = setting(False, "a quick run (a few seconds of video, few particles)")
 
 
 # -- the chained reference ---------------------------------------------------------------------

@@ -72,6 +72,8 @@ TRC_TO_WORLD = [2, 0, 1]
 class RegisterRealConfig(ExperimentConfig):
     """Fields of ``experiments/configs/register_real.yaml``."""
 
+    NAME = "register_real"
+    TINY_DOC = "a quick run (8 frames at 96 px, 12 particles, 1 iteration)"
     TINY: ClassVar[dict] = {
         "frames": 8,
         "sports2d_width": 96,
@@ -117,12 +119,9 @@ class RegisterRealConfig(ExperimentConfig):
     particles: int = setting(60, "particles per part", ge=2)
     iterations: int = setting(4, "particle BP iterations per pass", ge=1)
     restarts: int = setting(1, "particle BP passes", ge=1)
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
     polish_steps: int = setting(
         50, "steps of motion register's posture polish (its default: 50; 0: none)", ge=0
     )
-    out_dir: str = setting("runs/register_real", "output folder")
-    tiny: bool = setting(False, "a quick run (8 frames at 96 px, 12 particles, 1 iteration)")
 
 
 def _data_root(cfg: RegisterRealConfig) -> Path:

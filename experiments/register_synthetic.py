@@ -83,6 +83,8 @@ LIMB_PARTS = ("upper_arm", "forearm", "thigh", "shin")
 class RegisterSyntheticConfig(ExperimentConfig):
     """Fields of ``experiments/configs/register_synthetic.yaml``."""
 
+    NAME = "register_synthetic"
+    TINY_DOC = "a quick run (8 frames, 30 particles, 2 iterations)"
     TINY: ClassVar[dict] = {"frames": 8, "particles": 30, "iterations": 2, "restarts": 1}
 
     reference: str = setting(BUNDLED, "reference BVH", path="file")
@@ -111,7 +113,6 @@ class RegisterSyntheticConfig(ExperimentConfig):
     restarts: int = setting(2, "annealing runs", ge=1, le=10)
     refine_c: bool = setting(True, "stage 3: refine C through the body graph")
     scale: float = setting(0.0, "the body scale G if known (0: estimated)", ge=0)
-    seed: int = setting(0, "seed of the registration's draws", ge=0)
     polish_steps: int = setting(
         50,
         "steps of the posture polish after stages 2-3 (motion register's default; 0: none)",
@@ -123,8 +124,6 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "(0, motion register's default: the reference's proportions; 100: fitted)",
         ge=0,
     )
-    out_dir: str = setting("runs/register_synthetic", "output folder")
-    tiny: bool = setting(False, "a quick run (8 frames, 30 particles, 2 iterations)")
 
 
 @dataclass

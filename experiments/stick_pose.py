@@ -41,6 +41,11 @@ TIMINGS = ("poses_per_s", "poses_per_s_1thread", "opencv_poses_per_s")
 class StickPoseConfig(ExperimentConfig):
     """Fields of ``experiments/configs/stick_pose.yaml``."""
 
+    NAME = "stick_pose"
+    TINY_DOC = (
+        "a quick run: frames=12, throughput_poses=200, throughput_rounds=1, "
+        "sweep_noise=[0, 0.036] (values given on the command line win)"
+    )
     TINY: ClassVar[dict] = {
         "frames": 12,
         "throughput_poses": 200,
@@ -65,13 +70,6 @@ class StickPoseConfig(ExperimentConfig):
     throughput_poses: int = setting(10000, "poses solved per throughput round", ge=1)
     throughput_rounds: int = setting(
         5, "throughput rounds (best of, interleaved with OpenCV's)", ge=1
-    )
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/stick_pose", "output folder")
-    tiny: bool = setting(
-        False,
-        "a quick run: frames=12, throughput_poses=200, throughput_rounds=1, "
-        "sweep_noise=[0, 0.036] (values given on the command line win)",
     )
 
 

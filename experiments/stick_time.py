@@ -39,6 +39,9 @@ FULL_MATRIX_METHODS = ("dtw", "chain", "robust")
 class StickTimeConfig(ExperimentConfig):
     """Fields of ``experiments/configs/stick_time.yaml`` (see experiments/README.md)."""
 
+    NAME = "stick_time"
+    TINY_DOC = "a few frames (the first 120 reference frames), for tests"
+
     bvh: str = setting(BUNDLED, "reference BVH file (120 Hz motion capture)", path="file")
     fps: float = setting(
         25.0, "input frame rate in Hz (the reference's is read from the BVH)", gt=0, le=1000
@@ -62,9 +65,6 @@ class StickTimeConfig(ExperimentConfig):
     static_camera: bool = setting(
         True, "fit one camera pose to a first robust alignment's inliers (chain methods)"
     )
-    seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
-    out_dir: str = setting("runs/stick_time", "output folder")
-    tiny: bool = setting(False, "a few frames (the first 120 reference frames), for tests")
     methods: list[str] = setting(
         ["dtw", "chain", "robust"],
         "aligners: dtw, chain, robust on the full cost matrix; c2f and c2f_robust: the chain "

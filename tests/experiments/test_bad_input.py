@@ -417,8 +417,9 @@ def test_help_is_plain_text_and_lists_the_experiments_and_their_fields(capsys):
     for name, exp in EXPERIMENTS.items():  # each lists its configs, its own first by name
         assert headers[name].endswith(f"; schema {exp.schema.__name__}):"), headers[name]
         assert f"experiments/configs/{name}.yaml" in headers[name], headers[name]
+        assert exp.schema().out_dir == f"runs/{name}"  # the schema's NAME is its name here
     assert "experiments/configs/register_movements.yaml" in headers["register_synthetic"]
-    assert "static_camera, seed, out_dir, tiny, methods" in text
+    assert "  seed, out_dir, tiny, bvh, fps, warp" in text  # every schema's, declared once
     assert main(["list"]) == 0
     listing = capsys.readouterr().out
     assert "  fps (default 25.0): a number in (0, 1000]\n      input frame rate in Hz" in listing
@@ -430,6 +431,11 @@ def test_help_is_plain_text_and_lists_the_experiments_and_their_fields(capsys):
         "  tiny=true sets: frames=12, throughput_poses=200, throughput_rounds=1, sweep_noise=[0.0, 0.036]"
         in listing
     )
+    assert (  # out_dir's default and tiny's meaning are each experiment's own
+        "  out_dir (default 'runs/register_synthetic'): a string\n      output folder\n"
+        "  tiny (default false): true or false\n"
+        "      a quick run (8 frames, 30 particles, 2 iterations)\n"
+    ) in listing
     assert main(["run", "--help"]) == 0
     assert "``" not in capsys.readouterr().out
 
