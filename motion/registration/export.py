@@ -984,6 +984,10 @@ class RegistrationSummary:
         return json.dumps(_jsonable(dataclasses.asdict(self)), indent=indent, allow_nan=False)
 
 
+#: plurals of the part names that do not take an "s" (a left and right pair read as one)
+_PLURALS = {"foot": "feet"}
+
+
 def proportion_words(proportions: dict[str, float], most: int = 4, least_pct: float = 2.0) -> str:
     """The parts whose length differs most from the reference's, for a user: ``"thighs 7 %
     shorter, shins 5 % longer"`` (left and right, named ``X_l`` / ``X_r``, read as one;
@@ -992,7 +996,7 @@ def proportion_words(proportions: dict[str, float], most: int = 4, least_pct: fl
     groups: dict[str, list[float]] = {}
     for name, scale in proportions.items():
         pair = name[-2:] in ("_l", "_r")
-        key = (name[:-2] + "s" if pair else name).replace("_", " ")
+        key = (_PLURALS.get(name[:-2], name[:-2] + "s") if pair else name).replace("_", " ")
         groups.setdefault(key, []).append(scale)
     means = {k: sum(v) / len(v) for k, v in groups.items()}
     large = sorted(

@@ -501,6 +501,7 @@ def test_proportion_words_name_the_largest_differences():
     )
     assert proportion_words(scales, most=1) == "upper arms 10 % longer"
     assert proportion_words({"pelvis": 1.01}) == ""
+    assert proportion_words({"foot_l": 1.17, "foot_r": 1.17}) == "feet 17 % longer"
 
 
 def test_student_bvh_needs_the_reference_file(reference):
