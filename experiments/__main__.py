@@ -63,21 +63,6 @@ def _configs_of(name: str) -> list[str]:
     ]
 
 
-def _describe(schema: type) -> list[str]:
-    """:func:`describe`'s lines for ``schema``, the meaning of ``tiny`` its own (the
-    schema's ``TINY_DOC``; the field, declared once on ``ExperimentConfig``, has a generic
-    one)."""
-    lines = describe(schema, text_syntax=False)
-    if not schema.TINY_DOC:
-        return lines
-    head = next(i for i, line in enumerate(lines) if line.startswith("  tiny (default "))
-    end = head + 1
-    while end < len(lines) and lines[end].startswith("      "):  # the generic meaning
-        end += 1
-    doc = textwrap.wrap(schema.TINY_DOC, 100, initial_indent="      ", subsequent_indent="      ")
-    return lines[: head + 1] + doc + lines[end:]
-
-
 def experiments_help(details: bool = False) -> str:
     """The experiments and their fields: names only, or (``details``) each field's default,
     type, range and meaning."""
@@ -87,7 +72,9 @@ def experiments_help(details: bool = False) -> str:
         configs = ", ".join(_configs_of(name)) or "no shipped config"
         lines.append(f"{name} ({configs}; schema {exp.schema.__name__}):")
         if details:
-            lines += _describe(exp.schema)
+            # tiny, declared once on ExperimentConfig, means what each schema says it does
+            meanings = {"tiny": exp.schema.TINY_DOC} if exp.schema.TINY_DOC else None
+            lines += describe(exp.schema, text_syntax=False, meanings=meanings)
             if exp.schema.TINY:
                 tiny = ", ".join(f"{k}={v}" for k, v in exp.schema.TINY.items())
                 lines.append(f"  tiny=true sets: {tiny} (command-line values win)")

@@ -68,6 +68,7 @@ from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import check_movement
 from motion.registration.polish import PosturePolishSettings
 from motion.registration.refine import RefineSettings
+from motion.registration.types import paired_part
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
 
@@ -489,9 +490,7 @@ def proportion_errors(reference: Reference, student: Reference | None, result) -
     if result.proportions is not None:
         estimate = estimate * result.proportions.part_scales.to(truth)
     names = reference.spec.part_names
-    limbs = [
-        i for i, n in enumerate(names) if n.removesuffix("_l").removesuffix("_r") in LIMB_PARTS
-    ]
+    limbs = [i for i, n in enumerate(names) if (paired_part(n) or n) in LIMB_PARTS]
     out = {}
     for name, est in (("", estimate), ("_no_change", anchor)):
         ratio = est / truth

@@ -534,11 +534,20 @@ def _text_form(value: Any, t: _Type, spec: Spec) -> str:
     return str(value)
 
 
-def describe(cls: type, text_syntax: bool = True, width: int = 100, prefix: str = "") -> list[str]:
+def describe(
+    cls: type,
+    text_syntax: bool = True,
+    width: int = 100,
+    prefix: str = "",
+    meanings: dict[str, str] | None = None,
+) -> list[str]:
     """Plain-text help lines for the fields of ``cls``: name, default, what it accepts and
     its meaning (defaults in command-line syntax, or YAML's when ``text_syntax`` is false);
-    a nested group's fields follow its line, dotted (``prefix``: the group's key and a dot)."""
+    a nested group's fields follow its line, dotted (``prefix``: the group's key and a dot).
+    ``meanings`` replaces the declared meaning of the (top-level) fields it names (e.g. a
+    base class's generic field that each subclass explains its own way)."""
     lines = []
+    meanings = meanings or {}
     defaults = cls()
     for name, (t, spec) in _fields(cls).items():
         value = getattr(defaults, name)
@@ -549,10 +558,9 @@ def describe(cls: type, text_syntax: bool = True, width: int = 100, prefix: str 
         else:
             default = _text_form(value, t, spec) if text_syntax else show(value, limit=60)
             lines.append(f"  {prefix}{name} (default {default}): {expected(t, spec)}")
-        if spec.doc:
-            lines += textwrap.wrap(
-                spec.doc, width, initial_indent="      ", subsequent_indent="      "
-            )
+        doc = meanings.get(name, spec.doc)
+        if doc:
+            lines += textwrap.wrap(doc, width, initial_indent="      ", subsequent_indent="      ")
         if _group(t) and not spec.opaque:
             lines += describe(t.base, text_syntax, width, f"{prefix}{name}.")
     return lines

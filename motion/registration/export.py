@@ -48,7 +48,13 @@ from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
 from motion.registration.movement import MovementCheck
-from motion.registration.types import Proportions, Reference, Registration, RegistrationError
+from motion.registration.types import (
+    Proportions,
+    Reference,
+    Registration,
+    RegistrationError,
+    paired_part,
+)
 from motion.settings import Settings, setting
 
 __all__ = [
@@ -995,8 +1001,8 @@ def proportion_words(proportions: dict[str, float], most: int = 4, least_pct: fl
     does)."""
     groups: dict[str, list[float]] = {}
     for name, scale in proportions.items():
-        pair = name[-2:] in ("_l", "_r")
-        key = (_PLURALS.get(name[:-2], name[:-2] + "s") if pair else name).replace("_", " ")
+        pair = paired_part(name)
+        key = (name if pair is None else _PLURALS.get(pair, pair + "s")).replace("_", " ")
         groups.setdefault(key, []).append(scale)
     means = {k: sum(v) / len(v) for k, v in groups.items()}
     large = sorted(

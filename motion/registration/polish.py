@@ -56,6 +56,7 @@ from motion.registration.types import (
     Reference,
     RegistrationError,
     VideoFeatures,
+    paired_part,
     scaled_spec,
 )
 from motion.render import capsule_sdf, project_parts
@@ -397,7 +398,7 @@ def part_groups(names: list[str], symmetric: bool) -> tuple[list[str], Tensor]:
     groups: list[str] = []
     index = []
     for name in names:
-        key = name[:-2] if symmetric and name[-2:] in ("_l", "_r") else name
+        key = (paired_part(name) if symmetric else None) or name
         if key not in groups:
             groups.append(key)
         index.append(groups.index(key))

@@ -41,6 +41,7 @@ __all__ = [
     "expand_to_joints",
     "frame_ranges",
     "nonfinite_frames",
+    "paired_part",
     "scaled_spec",
 ]
 
@@ -213,6 +214,12 @@ class Proportions:
     def as_dict(self) -> dict[str, float]:
         """``{part: scale}`` in the spec's order."""
         return {n: float(x) for n, x in zip(self.part_names, self.part_scales, strict=True)}
+
+
+def paired_part(name: str) -> str | None:
+    """The name a left and right part share (``"thigh"`` for ``"thigh_l"`` and
+    ``"thigh_r"``), or ``None`` for a part without a side (``"pelvis"``)."""
+    return name[:-2] if name[-2:] in ("_l", "_r") else None
 
 
 def expand_to_joints(part_scales: Tensor, parts: Tensor) -> Tensor:
