@@ -448,6 +448,7 @@ def run(cfg: RegisterSyntheticConfig):
     }
     columns = {
         "frame": np.arange(n),
+        "time_s": angles.time_s.numpy(),
         "c_true": truth.C.numpy(),
         "c_stage1": result.C_stage1.numpy(),
         "c": result.C.numpy(),
@@ -455,6 +456,8 @@ def run(cfg: RegisterSyntheticConfig):
         "t_rot_err_deg": t_rot.numpy(),
         "e3d": e3d.numpy(),
         "silhouette_iou": result.fit.numpy(),
+        "trusted": ((result.fit >= TRUSTED_FIT) & ~movement.held(n)).numpy().astype(int),
+        **angle_columns(angles, truth_diff[:, keep]),
     }
     joint_names = [reference.skeleton.names[j] for j in driven]
     for f in summary.largest_differences:  # what each finding says against the truth
@@ -553,6 +556,21 @@ def finding_agreement(
         "findings_agree_fraction": agree / len(stated) if stated else math.nan,
         "findings_withheld_fraction": (1 - len(stated) / len(findings) if findings else math.nan),
     }
+
+
+def angle_columns(angles, truth: Tensor) -> dict[str, np.ndarray]:
+    """Per-frame columns of each estimated coordinate: ``diff_<name>`` (the estimated
+    difference, degrees), ``true_<name>`` (the true one, ``truth`` ``(T', K')``) and
+    ``unc_<name>`` (the inference's uncertainty; absent without one): what a calibration of
+    the findings' method error reads back from the run records
+    (:mod:`experiments.findings_calibration`)."""
+    out = {}
+    for k, name in enumerate(angles.coordinates):
+        out[f"diff_{name}"] = angles.difference_deg[:, k].numpy()
+        out[f"true_{name}"] = truth[:, k].numpy()
+        if angles.uncertainty_deg is not None:
+            out[f"unc_{name}"] = angles.uncertainty_deg[:, k].numpy()
+    return out
 
 
 def angle_error_metrics(angles, truth: Tensor, trusted: Tensor) -> dict[str, float]:
