@@ -1,5 +1,6 @@
-"""Registration throughput: seconds per video frame of each stage, and stage 1's pair fits per
-second beside OpenCV's ``solvePnP`` doing the same pair fits, measured in the same run.
+"""Registration throughput: seconds per video frame of each stage (also end to end on another
+performer's walk, the cross-performer case), and stage 1's pair fits per second beside
+OpenCV's ``solvePnP`` doing the same pair fits, measured in the same run.
 
 On a short synthetic student (the bundled walk, time-warped and re-articulated by
 ``motion synth``; the first ``--frames`` video frames at 25 fps, ``--size`` pixels) seen by 1
@@ -17,13 +18,23 @@ and by 2 static cameras, prints
     one call per pair) on the same pairs' 2-D joints -- the pose from the joints alone, which
     is a part of what our fit does (silhouette and edge terms besides); one camera. The
     median joint reprojection error of both fits is printed beside, so the two are seen to
-    solve comparable problems.
+    solve comparable problems;
+  * the cross-performer case (issue 35): another performer walking, CMU subject 7
+    (``motion/data/cmu_07_01_walk.bvh``), rendered as ``experiments/register_synthetic.py``
+    renders its ``student=`` (its config's defaults: 25 fps, 320 x 240, focal 450 px, a
+    30-degree turn, time-warped, no 2-D joints) and registered against the bundled walk
+    (subject 2) end to end by ``register`` at its defaults (``RegistrationSettings()``, seed
+    0), seen by 1 and by 2 cameras, the first ``--cross-frames`` video frames: seconds per
+    video frame of stages 0-1 (body scale, approximate registration), stages 2-3
+    (``refine``), the posture polish, stages 2-3 and polish together (the issue's target: 2
+    s per video frame) and the whole ``register`` call (``result.timings`` per stage).
 
 Usage: python benchmarks/bench_registration.py [--frames N] [--size W H] [--band W]
-       [--particles K] [--iterations N] [--restarts N] [--rounds N] [--repeats N] [--quick]
-       [--json PATH]
+       [--particles K] [--iterations N] [--restarts N] [--rounds N] [--repeats N]
+       [--cross-frames N] [--quick] [--json PATH]
 
-``--quick``: 12 frames, 20 particles, 2 iterations, 1 stage-3 round, a band of 8.
+``--quick``: 12 frames, 20 particles, 2 iterations, 1 stage-3 round, a band of 8; 8
+cross-performer frames.
 ``--json PATH``: also write the figures as rows for ``benchmarks/report.py``
 (docs/benchmarks.md).
 """
@@ -39,7 +50,8 @@ import torch
 from report import parse_args, write_rows  # benchmarks/report.py, beside this script
 
 from motion.bundled import WALK_02_01 as BUNDLED
-from motion.registration import Reference
+from motion.bundled import WALK_07_01
+from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import (
     Stage1Settings,
     approximate_registration,
@@ -51,7 +63,16 @@ from motion.runtime import retain_freed_memory
 from motion.synth import SynthConfig, synthesize
 
 #: ``--quick``: a shorter video, fewer particles
-QUICK = {"frames": 12, "particles": 20, "iterations": 2, "rounds": 1, "band": 8}
+QUICK = {"frames": 12, "particles": 20, "iterations": 2, "rounds": 1, "band": 8, "cross_frames": 8}
+#: the cross-performer student's video: ``experiments/register_synthetic.py``'s config defaults
+#: for ``student=`` (no articulation offsets: the other performer's own motion differs)
+CROSS_SYNTH = dict(fps=25.0, warp=0.3, articulation={}, yaw_deg=30.0, size=[320, 240],
+                   focal_px=450.0, seed=0)  # fmt: skip
+#: what the cross-performer case's "stages 2-3 + polish" figure is held against
+CROSS_ANCHOR = "issue 35 target (2 s per video frame, stages 2-3 and polish at defaults)"
+CROSS_TARGET = 2.0
+#: the cross-performer case's figures, seconds per video frame
+CROSS_STAGES = ("stages 0-1", "stages 2-3", "polish", "stages 2-3 + polish", "total")
 
 
 def student(cameras: int, frames: int, size: list[int], focal: float):
@@ -84,6 +105,35 @@ def stage_seconds(reference, video, refine_settings, repeats: int) -> tuple[floa
         refine(reference, video, s1.C, s1.rotation, s1.translation, 1.0, refine_settings, gen)
         best23 = min(best23, time.perf_counter() - t0)
     return best1 / video.num_frames, best23 / video.num_frames
+
+
+def cross_student(cameras: int, frames: int):
+    """Another performer walking (CMU subject 7) seen by ``cameras`` cameras, rendered as
+    ``experiments/register_synthetic.py`` renders its ``student=``: features without 2-D
+    joints, cut to ``frames`` frames."""
+    seq = synthesize(BUNDLED, SynthConfig(cameras=cameras, **CROSS_SYNTH), student=WALK_07_01)
+    n = min(frames, seq.meta["num_video_frames"])
+    return features_from_sequence(seq, keypoints=False).cut(slice(0, n))
+
+
+def cross_seconds(reference, video, repeats: int) -> dict[str, float]:
+    """Best of ``repeats`` seconds of each of :data:`CROSS_STAGES` per video frame: ``register``
+    end to end at its defaults (``result.timings`` per stage; total: the whole call)."""
+    best = dict.fromkeys(CROSS_STAGES, float("inf"))
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = register(reference, video, settings=RegistrationSettings())
+        total = time.perf_counter() - t0
+        t = result.timings
+        for stage, value in (
+            ("stages 0-1", t["stage0"] + t["stage1"]),
+            ("stages 2-3", t["stages23"]),
+            ("polish", t["polish"]),
+            ("stages 2-3 + polish", t["stages23"] + t["polish"]),
+            ("total", total),
+        ):
+            best[stage] = min(best[stage], value)
+    return {stage: value / video.num_frames for stage, value in best.items()}
 
 
 def reprojection_px(k: np.ndarray, rot: np.ndarray, t: np.ndarray, pts: np.ndarray, uv):
@@ -178,6 +228,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--rounds", type=int, default=2, help="stage 3 rounds (0: no stage 3)")
     parser.add_argument("--repeats", type=int, default=1, help="timed rounds (best is kept)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    parser.add_argument(
+        "--cross-frames",
+        type=int,
+        default=24,
+        help="video frames of the cross-performer case (25 fps, 320 x 240)",
+    )
     args = parse_args(parser, QUICK, argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -202,6 +258,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         rows.append((cameras, video.num_frames, s1, s23))
         if cameras == 1:
             pair_row = pair_throughput(seq, reference, video, truth, args.band, args.repeats)
+    cross = []
+    for cameras in (1, 2):
+        video = cross_student(cameras, args.cross_frames)
+        cross.append((cameras, video.num_frames, cross_seconds(reference, video, args.repeats)))
 
     w, h = args.size
     print(
@@ -228,6 +288,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         f"ours / OpenCV = {rate['ours'] / rate['opencv']:.2f}x (full cost), "
         f"{rate['ours_joints'] / rate['opencv']:.2f}x (joints only)"
     )
+    cw, ch = CROSS_SYNTH["size"]
+    print(
+        f"\ncross-performer: CMU 07_01 (subject 7) against the bundled 02_01 (subject 2), "
+        f"{cw} x {ch} at 25 fps, register() at RegistrationSettings() (seed 0); seconds per "
+        f"video frame (target: stages 2-3 + polish <= {CROSS_TARGET:g})"
+    )
+    print("| cameras | frames | " + " | ".join(CROSS_STAGES) + " |")
+    print("|---" * (2 + len(CROSS_STAGES)) + "|")
+    for cameras, n, sec in cross:
+        print(f"| {cameras} | {n} | " + " | ".join(f"{sec[k]:.3f}" for k in CROSS_STAGES) + " |")
     results = []
     for cameras, n, s1, s23 in rows:
         case = f"{n} frames at {w} x {h}, {cameras} camera(s): seconds per video frame"
@@ -246,6 +316,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 dict(case=f"{case}: {what}", ours=labels[key], value=figures[key],
                      anchor=labels["opencv"], anchor_value=figures["opencv"], units=units,
                      better=better)
+            )  # fmt: skip
+    for cameras, n, sec in cross:
+        case = (
+            f"cross-performer (CMU 07_01 against 02_01), {n} frames at {cw} x {ch}, "
+            f"{cameras} camera(s), register() at defaults: seconds per video frame"
+        )
+        for stage in CROSS_STAGES:
+            anchored = stage == "stages 2-3 + polish"
+            results.append(
+                dict(case=case, ours=stage, value=sec[stage],
+                     anchor=CROSS_ANCHOR if anchored else None,
+                     anchor_value=CROSS_TARGET if anchored else None,
+                     units="s / video frame", better="lower")
             )  # fmt: skip
     return write_rows(args.json, results)
 
