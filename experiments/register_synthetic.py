@@ -407,6 +407,7 @@ def run(cfg: RegisterSyntheticConfig):
         {},
         trusted=(result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames),
         movement=movement,
+        cameras=cfg.cameras,
     )
     truth_diff = true_differences(reference, student, truth)
     keep = [COORDINATES.index(c) for c in angles.coordinates]

@@ -283,6 +283,7 @@ def _write_outputs(
         trusted=trusted,
         movement=movement,
         findings=cfg.findings,
+        cameras=rig.num_cameras,
     )
     if detection is not None:
         summary = dataclasses.replace(summary, detection=detection.summary())

@@ -47,6 +47,7 @@ from motion.angles import (
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
+from motion.registration.method_error import MethodError, shipped_method_error
 from motion.registration.movement import MovementCheck
 from motion.registration.types import (
     Proportions,
@@ -73,6 +74,7 @@ __all__ = [
     "per_joint_mean_abs_deg",
     "proportion_words",
     "save_registration",
+    "stated_findings",
     "student_bvh",
     "student_kinematics",
     "summarise",
@@ -87,6 +89,9 @@ F64 = torch.float64
 #: differences leave such frames out, the report greys them (a person leaving the view, a
 #: lost limb)
 TRUSTED_FIT = 0.5
+#: the method's error (degrees) of a coordinate the shipped calibration does not cover
+#: (:class:`FindingSettings`): about the RMS over every coordinate on other performers
+FALLBACK_METHOD_ERROR_DEG = 12.0
 #: seconds of the running median over a joint's difference before the largest ones are
 #: looked for (the posture estimate jitters from frame to frame by several degrees)
 SMOOTH_S = 0.2
@@ -406,6 +411,9 @@ class JointDifference:
             length, as neighbouring frames' errors go together), degrees; NaN when not
             measured.
         frames: the run's trusted frames.
+        method_error_deg: the method's own error of this coordinate's difference, degrees
+            (:class:`FindingSettings.method_error`; 0: not counted), added in quadrature to
+            the inference's in the sentence's ``±``.
     """
 
     coordinate: str
@@ -415,6 +423,7 @@ class JointDifference:
     mean_abs_deg: float
     uncertainty_deg: float = math.nan
     frames: int = 0
+    method_error_deg: float = 0.0
 
     @property
     def text(self) -> str:
@@ -426,8 +435,8 @@ class JointDifference:
         size = abs(self.mean_difference_deg)
         amount = f"{size:.0f}" if size >= 1 else f"{size:.1f}"
         unit = "degree" if amount == "1" else "degrees"
-        if math.isfinite(self.uncertainty_deg):
-            u = self.uncertainty_deg
+        if math.isfinite(self.uncertainty_deg) or self.method_error_deg > 0:
+            u = math.hypot(np.nan_to_num(self.uncertainty_deg), self.method_error_deg)
             unit = f"± {u:.0f} degrees" if u >= 1 else f"± {u:.1f} degrees"
         more = "more" if self.mean_difference_deg > 0 else "less"
         when = (
@@ -573,19 +582,50 @@ class FindingSettings(Settings):
         "median's width, SMOOTH_S: a shorter run is a jitter the median let through)",
         ge=0,
     )
-    method_error_deg: float = setting(
-        12.0,
+    method_error_deg: float | None = setting(
+        None,
         "the method's own error of a joint-angle difference, degrees, added in quadrature to "
         "the inference's uncertainty for the interval: the particle spread measures how far "
-        "the posterior lets a part turn, not how far the method is off. The default is the "
-        "error measured on students of other performers (experiments register_cross.yaml), "
-        "so a finding is kept only where it exceeds it; 0 trusts the spread alone (fit for a "
-        "student of the reference's own performer)",
+        "the posterior lets a part turn, not how far the method is off. none: each "
+        "coordinate's error as measured on students of other performers, with as many "
+        "cameras (motion/registration/data/method_error.json, written by python -m "
+        "experiments.findings_calibration; uncovered coordinates: FALLBACK_METHOD_ERROR_DEG); "
+        "a number: that for every coordinate (0 trusts the spread alone, fit for a student "
+        "of the reference's own performer)",
         ge=0,
     )
 
-    def why_not(self, finding: JointDifference, frame_rate: float) -> str:
-        """Why ``finding`` is not stated ("" when it is)."""
+    max_interval_deg: float | None = setting(
+        5.0,
+        "a finding is stated only when its interval is at most ± this many degrees (interval_z "
+        "times the inference's uncertainty and the method's error in quadrature): a "
+        "difference the method cannot place within it is no finding a coach can act on, "
+        "however large (5: a stated finding is then within 5 degrees of the truth about 95 % "
+        "of the time; none: any interval clear of 0 is stated)",
+        gt=0,
+    )
+
+    def method_error(
+        self, coordinate: str, cameras: int, table: MethodError | None = None
+    ) -> float:
+        """The method's error of ``coordinate``'s difference with ``cameras`` cameras,
+        degrees: :attr:`method_error_deg`, or when that is none the calibration ``table``
+        (default: the shipped one, :func:`~motion.registration.method_error.
+        shipped_method_error`; a coordinate it does not cover: :data:`FALLBACK_METHOD_ERROR_DEG`)."""
+        if self.method_error_deg is not None:
+            return self.method_error_deg
+        found = (table or shipped_method_error()).error_deg(coordinate, cameras)
+        return FALLBACK_METHOD_ERROR_DEG if found is None else found
+
+    def why_not(
+        self,
+        finding: JointDifference,
+        frame_rate: float,
+        cameras: int = 1,
+        table: MethodError | None = None,
+    ) -> str:
+        """Why ``finding`` is not stated ("" when it is), seen by ``cameras`` cameras
+        (``table``: as :meth:`method_error`)."""
         needed = math.ceil(self.min_trusted_s * frame_rate - 1e-9)
         if finding.frames < needed:
             return (
@@ -593,17 +633,24 @@ class FindingSettings(Settings):
                 f"({self.min_trusted_s:g} s) expected"
             )
         u = finding.uncertainty_deg if math.isfinite(finding.uncertainty_deg) else 0.0
-        spread = self.interval_z * math.hypot(u, self.method_error_deg)
+        e = self.method_error(finding.coordinate, cameras, table)
+        spread = self.interval_z * math.hypot(u, e)
         if abs(finding.mean_difference_deg) <= spread:
             method = (
-                f"; the inference's ± {u:.0f} and the method's error of "
-                f"{self.method_error_deg:g} degrees"
-                if self.method_error_deg
+                f"; the inference's ± {u:.0f} and the method's error of {e:.3g} degrees"
+                if e
                 else ""
             )
             return (
                 f"its interval ({finding.mean_difference_deg:+.0f} ± {spread:.0f} degrees"
                 f"{method}) holds 0: the inference cannot tell it from no difference"
+            )
+        if self.max_interval_deg is not None and spread > self.max_interval_deg:
+            return (
+                f"its interval ({finding.mean_difference_deg:+.0f} ± {spread:.0f} degrees) is "
+                f"wider than ± {self.max_interval_deg:g}: the method cannot place this "
+                "difference finely enough"
+                + (f" (its own error on this angle: {e:.0f} degrees)" if e else "")
             )
         return ""
 
@@ -1033,6 +1080,37 @@ def _jsonable(value):
     return str(value)
 
 
+def stated_findings(
+    angles: JointAngles,
+    trusted: Tensor | None,
+    frame_rate: float,
+    rules: FindingSettings | None = None,
+    cameras: int = 1,
+    matches: bool = True,
+    count: int = 3,
+    table: MethodError | None = None,
+) -> list[dict]:
+    """The ``count`` :func:`largest_differences` of the trusted angles
+    (:func:`trusted_angles`), largest ``|mean difference|`` first, each as
+    :meth:`JointDifference.to_dict` with its method error (``rules``, ``cameras``,
+    ``table``: :meth:`FindingSettings.method_error`) and ``stated`` and ``why``
+    (:meth:`FindingSettings.why_not`; every one withheld when the movements do not match,
+    ``matches`` false)."""
+    rules = rules or FindingSettings()
+    out = []
+    found = largest_differences(trusted_angles(angles, trusted), count)
+    for d in sorted(found, key=lambda d: -abs(d.mean_difference_deg)):
+        e = rules.method_error(d.coordinate, cameras, table)
+        d = dataclasses.replace(d, method_error_deg=e)
+        why = (
+            rules.why_not(d, frame_rate, cameras, table)
+            if matches
+            else "the student does not perform the reference's movement"
+        )
+        out.append({**d.to_dict(), "stated": not why, "why": why})
+    return out
+
+
 def summarise(
     reg: Registration,
     reference: Reference,
@@ -1043,6 +1121,7 @@ def summarise(
     trusted: Tensor | None = None,
     movement: MovementCheck | None = None,
     findings: FindingSettings | None = None,
+    cameras: int = 1,
 ) -> RegistrationSummary:
     """The run in one record (:class:`RegistrationSummary`).
 
@@ -1061,15 +1140,9 @@ def summarise(
             ``reg.warnings``.
         findings: when a largest difference is stated (:class:`FindingSettings`); every
             difference is withheld when the movements do not match.
+        cameras: how many cameras saw the student (the method's error depends on it).
     """
     matches = movement is None or movement.motions_match
-    rules = findings or FindingSettings()
-
-    def why(d: JointDifference) -> str:
-        if not matches:
-            return "the student does not perform the reference's movement"
-        return rules.why_not(d, frame_rate)
-
     if trusted is None:
         trusted = reg.fit >= TRUSTED_FIT
     frame_rate = _check_rate(frame_rate)
@@ -1101,13 +1174,9 @@ def summarise(
         per_joint_mean_abs_deg={
             k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
         },
-        largest_differences=[
-            {**d.to_dict(), "stated": not why(d), "why": why(d)}
-            for d in sorted(
-                largest_differences(trusted_angles(angles, trusted), count),
-                key=lambda d: -abs(d.mean_difference_deg),
-            )
-        ],
+        largest_differences=stated_findings(
+            angles, trusted, frame_rate, findings, cameras, matches, count
+        ),
         timings={k: float(v) for k, v in reg.timings.items()},
         notes={k: str(v) for k, v in reg.notes.items()},
         settings=dict(settings),

@@ -40,6 +40,7 @@ from motion.registration.export import (
     write_mot,
     write_student_bvh,
 )
+from motion.registration.method_error import shipped_method_error
 from motion.registration.movement import MovementCheck
 from motion.registration.types import Proportions, Reference, Registration, RegistrationError
 from tests.motion.body.conftest import WALK
@@ -652,7 +653,12 @@ def test_summary_speed_offset_and_json(reference):
     assert record["motions_match"] is False
     assert record["warnings"] == [*other.reasons, *reg.warnings]
     assert record["movement"]["reasons"] == other.reasons
-    assert [d["text"] for d in record["largest_differences"]] == [d.text for d in found]
+    # each sentence's ± now carries the method's calibrated error of its angle
+    calibrated = [
+        dataclasses.replace(d, method_error_deg=FindingSettings().method_error(d.coordinate, 1))
+        for d in found
+    ]
+    assert [d["text"] for d in record["largest_differences"]] == [d.text for d in calibrated]
     assert all(
         d["stated"] is False and d["why"] == "the student does not perform the reference's movement"
         for d in record["largest_differences"]
@@ -711,7 +717,9 @@ def test_angle_uncertainty_adds_the_two_segments_part_spreads_in_quadrature(refe
 def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_zero():
     """Each rule alone withholds a finding and says why; the sentence carries the
     uncertainty when there is one."""
-    rules = FindingSettings(interval_z=2.0, min_trusted_s=0.2, method_error_deg=0.0)
+    rules = FindingSettings(
+        interval_z=2.0, min_trusted_s=0.2, method_error_deg=0.0, max_interval_deg=None
+    )
     sure = JointDifference("knee_angle_l", -12.0, 1.0, 1.5, 6.0, uncertainty_deg=3.0, frames=13)
     assert rules.why_not(sure, 25.0) == ""
     assert sure.text == (
@@ -726,7 +734,9 @@ def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_ze
     unmeasured = dataclasses.replace(sure, uncertainty_deg=math.nan)
     assert rules.why_not(unmeasured, 25.0) == "" and "±" not in unmeasured.text
     # the method's own error joins the inference's in quadrature: -12 +- 2 hypot(3, 12)
-    careful = FindingSettings(interval_z=2.0, min_trusted_s=0.2, method_error_deg=12.0)
+    careful = FindingSettings(
+        interval_z=2.0, min_trusted_s=0.2, method_error_deg=12.0, max_interval_deg=None
+    )
     assert careful.why_not(sure, 25.0) == (
         "its interval (-12 ± 25 degrees; the inference's ± 3 and the method's error of 12 "
         "degrees) holds 0: the inference cannot tell it from no difference"
@@ -734,6 +744,15 @@ def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_ze
     clear = dataclasses.replace(sure, mean_difference_deg=-30.0)
     assert careful.why_not(clear, 25.0) == ""
     assert careful.why_not(dataclasses.replace(unmeasured, mean_difference_deg=-20.0), 25) != ""
+    # a bound on the interval's width: -12 +- 6 clears 0 but is wider than +- 5
+    assert dataclasses.replace(rules, max_interval_deg=5.0).why_not(sure, 25.0) == (
+        "its interval (-12 ± 6 degrees) is wider than ± 5: the method cannot place this "
+        "difference finely enough"
+    )
+    assert dataclasses.replace(rules, max_interval_deg=6.5).why_not(sure, 25.0) == ""
+    assert "its own error on this angle: 12 degrees" in dataclasses.replace(
+        careful, max_interval_deg=5.0
+    ).why_not(clear, 25.0)
     with pytest.raises(ValueError, match=r"^FindingSettings: interval_z must be >= 0; got -1.0"):
         FindingSettings(interval_z=-1.0)
     with pytest.raises(ValueError, match=r"method_error_deg must be a finite number; got nan"):
@@ -752,12 +771,21 @@ def test_summary_withholds_the_findings_the_inference_cannot_tell_from_zero(refe
     for spread, stated in ((1.0, True), (10.0, False)):
         reg.part_spread_deg = torch.full((t, reference.spec.num_parts), spread)
         angles = joint_angles(reg, reference, 30.0)
-        spread_only = FindingSettings(method_error_deg=0.0)
+        spread_only = FindingSettings(method_error_deg=0.0, max_interval_deg=None)
         top = summarise(reg, reference, angles, 30.0, {}, findings=spread_only)
         top = top.largest_differences[0]
         assert top["coordinate"] == "knee_angle_l" and top["stated"] is stated
-        # by default the method's error (12 degrees) also counts: 12 is not clear of it
-        default = summarise(reg, reference, angles, 30.0, {}).largest_differences[0]
-        assert default["stated"] is False and "the method's error of 12" in default["why"]
+        # the method's error also counts: 12 is not clear of 2 x 12
+        careful = FindingSettings(method_error_deg=12.0, max_interval_deg=None)
+        flat = summarise(reg, reference, angles, 30.0, {}, findings=careful)
+        flat = flat.largest_differences[0]
+        assert flat["stated"] is False and "the method's error of 12" in flat["why"]
+        assert flat["method_error_deg"] == 12.0 and top["method_error_deg"] == 0.0
+        # by default each coordinate's calibrated error, for the cameras that saw it
+        for cameras in (1, 2):
+            default = summarise(reg, reference, angles, 30.0, {}, cameras=cameras)
+            default = default.largest_differences[0]
+            expected = shipped_method_error().error_deg("knee_angle_l", cameras)
+            assert default["method_error_deg"] == expected
         assert top["uncertainty_deg"] == pytest.approx(math.hypot(spread, spread))
         assert ("holds 0" in top["why"]) is not stated

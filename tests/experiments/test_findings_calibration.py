@@ -1,0 +1,151 @@
+"""The findings' calibration (experiments.findings_calibration): errors whose RMS is known by
+construction, pairs left out, and the findings a table lets through."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from experiments.findings_calibration import (
+    AngleRun,
+    calibrate,
+    leave_pair_out,
+    main,
+    read_angle_run,
+    score_run,
+)
+from experiments.register_synthetic import angle_columns
+from motion.registration.export import FindingSettings, JointAngles
+from motion.registration.method_error import MethodError
+
+NAMES = ["knee_angle_l", "hip_rotation_l"]
+T = 20  # frames at 25 Hz
+
+
+def make_run(pair, cameras, knee_error, hip_error, knee_truth=0.0, trusted=None) -> AngleRun:
+    """A run whose estimated knee difference is the truth plus ``knee_error`` (a constant or
+    a (T,) array), the hip's likewise; frames not ``trusted`` carry an error of 90."""
+    truth = np.zeros((T, 2))
+    truth[:, 0] = knee_truth
+    estimate = truth + np.stack([np.broadcast_to(knee_error, T), np.broadcast_to(hip_error, T)], 1)
+    trusted = np.ones(T, bool) if trusted is None else trusted
+    estimate[~trusted] = 90.0
+    return AngleRun(
+        folder=Path("."),
+        pair=pair,
+        cameras=cameras,
+        motions_match=True,
+        coordinates=list(NAMES),
+        time_s=np.arange(T) / 25.0,
+        trusted=trusted,
+        estimate=estimate,
+        truth=truth,
+        uncertainty=np.full((T, 2), 0.5),
+    )
+
+
+def test_the_error_is_the_rms_over_trusted_frames_per_camera_count():
+    """Knee +3 everywhere and a hip alternating +-4 give RMS 3 and 4 exactly; untrusted
+    frames (error 90) are left out; each camera count has its own table."""
+    alternating = np.where(np.arange(T) % 2 == 0, 4.0, -4.0)
+    half = np.arange(T) < T // 2
+    runs = [
+        make_run(("a.bvh", "b.bvh"), 1, 3.0, alternating, trusted=half | (np.arange(T) % 3 == 0)),
+        make_run(("b.bvh", "a.bvh"), 1, -3.0, 4.0),
+        make_run(("a.bvh", "b.bvh"), 2, 1.0, 2.0),
+    ]
+    table = calibrate(runs, "test")
+    assert table.degrees[1] == pytest.approx({"knee_angle_l": 3.0, "hip_rotation_l": 4.0})
+    assert table.degrees[2] == pytest.approx({"knee_angle_l": 1.0, "hip_rotation_l": 2.0})
+    trusted_first = int((half | (np.arange(T) % 3 == 0)).sum())
+    assert table.frames[1]["knee_angle_l"] == trusted_first + T
+    assert table.source == "test"
+
+
+def test_a_pair_is_scored_with_the_table_of_the_other_pairs_alone():
+    """The walk pair's runs (either direction) see the jog pair's errors, not their own."""
+    runs = [
+        make_run(("walk_a", "walk_b"), 1, 10.0, 10.0),
+        make_run(("walk_b", "walk_a"), 1, 10.0, 10.0),
+        make_run(("jog_a", "jog_b"), 1, 2.0, 5.0),
+    ]
+    tables = dict((id(run), table) for run, table in leave_pair_out(runs))
+    for run in runs[:2]:
+        assert tables[id(run)].degrees[1] == pytest.approx(
+            {"knee_angle_l": 2.0, "hip_rotation_l": 5.0}
+        )
+    assert tables[id(runs[2])].degrees[1] == pytest.approx(
+        {"knee_angle_l": 10.0, "hip_rotation_l": 10.0}
+    )
+
+
+def test_a_finding_is_stated_only_where_it_clears_the_table_and_is_scored_against_the_truth():
+    """The student's knee truly flexes 20 degrees less (a difference of -20 in the knee's
+    positive sense); estimated at -23 it agrees (within 5), and it is stated with a knee
+    error of 4 (-23 clears 2 hypot(0.5, 4)) but not with 15."""
+    run = make_run(("a", "b"), 1, -3.0, 0.0, knee_truth=-20.0)
+    sure = MethodError({1: {"knee_angle_l": 4.0, "hip_rotation_l": 4.0}})
+    wide = FindingSettings(max_interval_deg=None)  # -23 +- 8: stated without the +-5 bound
+    score = score_run(run, wide, sure)
+    assert score["findings_found"] == 1.0  # the hip's zero difference is no finding
+    assert score["findings_stated"] == 1.0 and score["findings_agree_fraction"] == 1.0
+    vague = MethodError({1: {"knee_angle_l": 15.0, "hip_rotation_l": 4.0}})
+    score = score_run(run, wide, vague)
+    assert score["findings_stated"] == 0.0 and math.isnan(score["findings_agree_fraction"])
+    assert score["findings_withheld_fraction"] == 1.0
+    assert score_run(run, FindingSettings(), sure)["findings_stated"] == 0.0  # +- 8 > +- 5
+    fine = MethodError({1: {"knee_angle_l": 2.0, "hip_rotation_l": 4.0}})  # +- 4.1
+    assert score_run(run, FindingSettings(), fine)["findings_stated"] == 1.0
+    wrong = make_run(("a", "b"), 1, -9.0, 0.0, knee_truth=-20.0)  # stated, 9 off: disagrees
+    score = score_run(wrong, FindingSettings(method_error_deg=0.0, max_interval_deg=None))
+    assert score["findings_stated"] == 1.0 and score["findings_agree_fraction"] == 0.0
+
+
+def test_a_record_written_by_register_synthetic_reads_back(tmp_path):
+    """register_synthetic's per-frame columns (angle_columns) and config, read back by
+    read_angle_run, then the command line writes a table and a page."""
+    diff = torch.tensor([[1.0, -2.0], [3.0, 4.0], [5.0, 6.0]], dtype=torch.float64)
+    truth = torch.zeros(3, 2, dtype=torch.float64)
+    angles = JointAngles(
+        coordinates=list(NAMES),
+        time_s=torch.arange(3, dtype=torch.float64) / 25,
+        reference_deg=diff,
+        student_deg=diff,
+        difference_deg=diff,
+        articulation_deg=diff[:, 0],
+        uncertainty_deg=torch.full((3, 2), 0.5, dtype=torch.float64),
+    )
+    columns = {"time_s": angles.time_s.numpy(), "trusted": np.array([1, 1, 0])}
+    columns |= angle_columns(angles, truth)
+    run_dir = tmp_path / "runs" / "one"
+    run_dir.mkdir(parents=True)
+    with open(run_dir / "per_frame.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(list(columns))
+        writer.writerows(zip(*columns.values(), strict=True))
+    config = {
+        "experiment": "register_synthetic",
+        "reference": "x/ref.bvh",
+        "student": "y/stu.bvh",
+        "cameras": 2,
+    }
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(config))
+    (run_dir / "metrics.json").write_text(json.dumps({"motions_match": 1.0}))
+    run = read_angle_run(run_dir, config, True)
+    assert run.pair == ("ref.bvh", "stu.bvh") and run.cameras == 2
+    np.testing.assert_array_equal(run.trusted, [True, True, False])
+    np.testing.assert_allclose(run.estimate, diff.numpy())
+    np.testing.assert_allclose(run.uncertainty, 0.5)
+    table_file, page_file = tmp_path / "error.json", tmp_path / "page.md"
+    assert main([str(tmp_path / "runs"), "--write", str(table_file), "--to", str(page_file)]) == 0
+    table = MethodError.read(table_file)
+    assert table.degrees[2]["knee_angle_l"] == pytest.approx(math.sqrt((1 + 9) / 2))
+    assert "| knee_angle_l | 2.2 (2) |" in page_file.read_text()
+    assert main([str(tmp_path)]) == 2  # no record of another performer directly in it
