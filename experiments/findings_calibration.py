@@ -301,7 +301,8 @@ def _provenance(sources: Sequence[str]) -> list[str]:
     dates = sorted(str(p.get("date")) for p in records)
     return [
         f"- runs: {sum(len(load_runs(s)) for s in sources)}",
-        f"- commits: {', '.join(commits) or 'not recorded'}",
+        f"- commits: {', '.join(commits) or 'not recorded'}"
+        + (" (with uncommitted changes)" if any(p.get("dirty") for p in records) else ""),
         f"- dates: {dates[0]} .. {dates[-1]}" if dates else "- dates: not recorded",
     ]
 
