@@ -637,7 +637,7 @@ class FindingSettings(Settings):
         spread = self.interval_z * math.hypot(u, e)
         if abs(finding.mean_difference_deg) <= spread:
             method = (
-                f"; the inference's ± {u:.0f} and the method's error of {e:.3g} degrees"
+                f"; the inference's ± {u:.0f} and the method's error of {e:.0f} degrees"
                 if e
                 else ""
             )
