@@ -74,7 +74,8 @@ OUTPUT_FILES = {
     "registration.npz": "C, T and A per video frame, fit, G (numpy arrays)",
     "summary.json": "the numbers of the summary, per-joint differences, settings, timings",
     "student.bvh": "the recovered motion on the reference skeleton (any BVH viewer)",
-    "joint_angles.csv": "per frame and clinical joint angle (OpenSim names): reference, student, difference",
+    "joint_angles.csv": "per frame and clinical joint angle (OpenSim names): reference, student, "
+    "difference, its uncertainty and the method's error",
     "joint_angles.mot": "the same as an OpenSim-style motion table",
     "report.html": "this report",
 }
@@ -292,7 +293,8 @@ def _write_outputs(
     (stage / "summary.json").write_text(summary.to_json(), encoding="utf-8")
     files["summary.json"] = stage / "summary.json"
     files["student.bvh"] = write_student_bvh(reg, reference, rate, stage / "student.bvh")
-    files["joint_angles.csv"] = write_joint_angles_csv(angles, stage / "joint_angles.csv")
+    errors = {c: cfg.findings.method_error(c, rig.num_cameras) for c in angles.coordinates}
+    files["joint_angles.csv"] = write_joint_angles_csv(angles, stage / "joint_angles.csv", errors)
     files["joint_angles.mot"] = write_mot(angles, stage / "joint_angles.mot")
     poses = body_poses(reg, reference)
     described = dict(OUTPUT_FILES)

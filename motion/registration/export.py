@@ -659,20 +659,33 @@ def _num(x: float) -> str:
     return format(float(x), ".10g")
 
 
-def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
+def write_joint_angles_csv(
+    angles: JointAngles, path: str | Path, method_error_deg: dict[str, float] | None = None
+) -> Path:
     """Write :class:`JointAngles` as CSV, long format: one row per frame and coordinate,
     columns ``frame`` (the source video's frame number), ``time_s`` (its clock),
     ``coordinate`` (OpenSim's name), ``reference_deg``, ``student_deg``, ``difference_deg``,
-    ``articulation_deg`` (10 significant digits; NaN written as ``nan``). Returns the
-    path."""
+    ``articulation_deg``, ``uncertainty_deg`` (the inference's uncertainty of the
+    difference, :attr:`JointAngles.uncertainty_deg`) and ``method_error_deg`` (the method's
+    own error of that coordinate's difference, ``method_error_deg`` by coordinate:
+    :meth:`FindingSettings.method_error`; a difference is known to about the two in
+    quadrature) (10 significant digits; NaN, or not measured, written as ``nan``). Returns
+    the path."""
     path = Path(path)
+    nan = torch.full_like(angles.difference_deg, math.nan, dtype=F64)
+    errors = method_error_deg or {}
+    method = torch.tensor(
+        [errors.get(name, math.nan) for name in angles.coordinates], dtype=F64
+    ).expand_as(nan)
     columns = [
         angles.reference_deg,
         angles.student_deg,
         angles.difference_deg,
         angles.articulation_deg,
+        nan if angles.uncertainty_deg is None else angles.uncertainty_deg,
+        method,
     ]
-    values = torch.stack([c.to(F64) for c in columns], -1).tolist()  # (T', K', 4)
+    values = torch.stack([c.to(F64) for c in columns], -1).tolist()  # (T', K', 6)
     with path.open("w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(
@@ -684,6 +697,8 @@ def write_joint_angles_csv(angles: JointAngles, path: str | Path) -> Path:
                 "student_deg",
                 "difference_deg",
                 "articulation_deg",
+                "uncertainty_deg",
+                "method_error_deg",
             ]
         )
         rows = zip(angles.video_frames, angles.time_s.tolist(), values, strict=True)

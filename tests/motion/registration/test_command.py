@@ -27,7 +27,7 @@ from motion.angles import COORDINATES
 from motion.bvh import read_bvh, write_bvh
 from motion.draw import write_video
 from motion.registration.config import ConfigError, RegisterConfig, load_config, override
-from motion.registration.export import load_registration
+from motion.registration.export import FindingSettings, load_registration
 from motion.registration.types import Reference
 from motion.synth import (
     BACKGROUND_SUFFIX,
@@ -169,6 +169,11 @@ def test_joint_angles_csv_has_a_row_per_frame_and_coordinate(register_run, summa
         diff = float(r["difference_deg"])
         student, reference = float(r["student_deg"]), float(r["reference_deg"])
         assert diff == pytest.approx(student - reference, abs=1e-6)
+    # each coordinate's method error, as the findings count it (1 camera)
+    rules = FindingSettings()
+    for r in rows[: len(coordinates)]:
+        assert float(r["method_error_deg"]) == pytest.approx(rules.method_error(r["coordinate"], 1))
+        assert float(r["uncertainty_deg"]) > 0
 
 
 def test_mot_parses(register_run, summary, video_frames):

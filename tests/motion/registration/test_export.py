@@ -315,8 +315,15 @@ def test_largest_differences_runs_and_text():
 
 
 def test_joint_angles_csv_reads_back(tmp_path, reference):
-    angles = joint_angles(make_registration(reference, num_frames=6), reference, 25.0)
-    path = write_joint_angles_csv(angles, tmp_path / "angles.csv")
+    """Every column of every frame and coordinate, the inference's uncertainty and the
+    method's error of each coordinate among them (nan where not given)."""
+    reg = make_registration(reference, num_frames=6)
+    reg.part_spread_deg = torch.rand(
+        6, reference.spec.num_parts, generator=torch.Generator().manual_seed(0)
+    )
+    angles = joint_angles(reg, reference, 25.0)
+    errors = {name: 1.0 + k for k, name in enumerate(angles.coordinates[:-1])}  # last: none
+    path = write_joint_angles_csv(angles, tmp_path / "angles.csv", errors)
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
         rows = list(reader)
@@ -328,6 +335,8 @@ def test_joint_angles_csv_reads_back(tmp_path, reference):
         "student_deg",
         "difference_deg",
         "articulation_deg",
+        "uncertainty_deg",
+        "method_error_deg",
     ]
     k_ = len(angles.coordinates)
     assert len(rows) == 6 * k_
@@ -338,6 +347,12 @@ def test_joint_angles_csv_reads_back(tmp_path, reference):
         for column in ("reference_deg", "student_deg", "difference_deg", "articulation_deg"):
             want = float(getattr(angles, column)[t, k])
             assert float(row[column]) == pytest.approx(want, rel=1e-9, abs=1e-9), column
+        want = float(angles.uncertainty_deg[t, k])
+        assert float(row["uncertainty_deg"]) == pytest.approx(want, rel=1e-9, abs=1e-9)
+        if k < k_ - 1:
+            assert float(row["method_error_deg"]) == 1.0 + k
+        else:
+            assert row["method_error_deg"] == "nan"
 
 
 def test_joint_angles_are_on_the_source_videos_clock(tmp_path, reference):
