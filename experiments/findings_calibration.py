@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from experiments.register_synthetic import finding_agreement
-from experiments.summarise import SummariseError, load_runs
+from experiments.summarise import SummariseError, load_runs, provenance_lines
 from motion.angles import COORDINATES
 from motion.registration.export import (
     FALLBACK_METHOD_ERROR_DEG,
@@ -296,15 +296,7 @@ def page(runs: Sequence[AngleRun], table: MethodError, sources: Sequence[str]) -
 
 
 def _provenance(sources: Sequence[str]) -> list[str]:
-    records = [r.provenance for s in sources for r in load_runs(s) if r.provenance]
-    commits = sorted({str(p.get("commit"))[:10] for p in records})
-    dates = sorted(str(p.get("date")) for p in records)
-    return [
-        f"- runs: {sum(len(load_runs(s)) for s in sources)}",
-        f"- commits: {', '.join(commits) or 'not recorded'}"
-        + (" (with uncommitted changes)" if any(p.get("dirty") for p in records) else ""),
-        f"- dates: {dates[0]} .. {dates[-1]}" if dates else "- dates: not recorded",
-    ]
+    return provenance_lines([run for source in sources for run in load_runs(source)])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -399,13 +399,14 @@ def run(cfg: RegisterSyntheticConfig):
         result.G,
     )
     angles = joint_angles(result, reference, video.frame_rate)
+    trusted = (result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames)
     summary = summarise(
         result,
         reference,
         angles,
         video.frame_rate,
         {},
-        trusted=(result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames),
+        trusted=trusted,
         movement=movement,
         cameras=cfg.cameras,
     )
@@ -457,7 +458,7 @@ def run(cfg: RegisterSyntheticConfig):
         "t_rot_err_deg": t_rot.numpy(),
         "e3d": e3d.numpy(),
         "silhouette_iou": result.fit.numpy(),
-        "trusted": ((result.fit >= TRUSTED_FIT) & ~movement.held(n)).numpy().astype(int),
+        "trusted": trusted.numpy().astype(int),
         **angle_columns(angles, truth_diff[:, keep]),
     }
     joint_names = [reference.skeleton.names[j] for j in driven]

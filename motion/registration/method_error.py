@@ -41,6 +41,8 @@ class MethodError:
             reads the entry of the largest camera count ``<= n`` (1 when ``n`` is below every
             count).
         source: where the figures come from (runs, commit), for the record.
+        frames: ``{cameras: {coordinate: frames}}``, how many trusted frames each error
+            was measured on.
     """
 
     degrees: dict[int, dict[str, float]]
