@@ -4,6 +4,7 @@ construction, pairs left out, and the findings a table lets through."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -14,14 +15,20 @@ import torch
 import yaml
 
 from experiments.findings_calibration import (
+    PELVIS,
     AngleRun,
     calibrate,
+    error_parts,
     leave_pair_out,
     main,
+    pelvis_rows,
     read_angle_run,
     score_run,
 )
 from experiments.register_synthetic import angle_columns
+from motion.angles import COORDINATES, SegmentMap, clinical_angles
+from motion.bundled import WALK_02_01
+from motion.registration import Reference
 from motion.registration.export import FindingSettings, JointAngles
 from motion.registration.method_error import MethodError
 
@@ -67,6 +74,90 @@ def test_the_error_is_the_rms_over_trusted_frames_per_camera_count():
     trusted_first = int((half | (np.arange(T) % 3 == 0)).sum())
     assert table.frames[1]["knee_angle_l"] == trusted_first + T
     assert table.source == "test"
+
+
+def test_the_error_splits_into_the_timing_part_and_the_posture_part():
+    """A knee estimated 6 too high where the reference's angle at the registration's C is 8
+    below its angle at the true C (timing +8, posture -2: total +6) and a hip whose timing
+    part alternates +-3 under a posture error of +4: the parts' RMS are those by
+    construction; a run without its timing error is left out; untrusted frames too."""
+    alternating = np.where(np.arange(T) % 2 == 0, 3.0, -3.0)
+    timing = np.stack([np.full(T, 8.0), alternating], 1)
+    trusted = np.arange(T) >= 2
+    known = dataclasses.replace(
+        make_run(("a", "b"), 1, 6.0, 4.0 + alternating, trusted=trusted), timing_error=timing
+    )
+    unknown = make_run(("a", "b"), 1, 50.0, 50.0)  # no timing error: not counted
+    parts = error_parts([known, unknown])
+    knee, hip = parts[1]["knee_angle_l"], parts[1]["hip_rotation_l"]
+    assert (knee.total, knee.timing, knee.posture) == pytest.approx((6.0, 8.0, 2.0))
+    assert (hip.timing, hip.posture) == pytest.approx((3.0, 4.0))
+    assert hip.total == pytest.approx(5.0)  # +4 +- 3 alternating: sqrt((49 + 1) / 2)
+    assert knee.frames == int(trusted.sum())
+
+
+def test_one_shared_pelvis_tilt_leaves_the_trunk_to_thigh_angle_right():
+    """Posture errors of +10 on lumbar extension and both hips (one pelvis tilt) give means
+    of +10, a hip RMS of 10 and a trunk-to-thigh RMS of 0; a hip of its own (+10 against a
+    lumbar 0) shows in the trunk-to-thigh angle."""
+    zeros = np.zeros((T, 3))
+
+    def run(pair, lumbar, hips):
+        return AngleRun(
+            folder=Path("."),
+            pair=pair,
+            cameras=1,
+            motions_match=True,
+            coordinates=list(PELVIS),
+            time_s=np.arange(T) / 25.0,
+            trusted=np.ones(T, bool),
+            estimate=zeros + np.array([lumbar, hips, hips]),
+            truth=zeros,
+            uncertainty=zeros + 0.5,
+            timing_error=zeros,
+        )
+
+    rows = dict(
+        ((p, c), rest)
+        for p, c, *rest in pelvis_rows([run(("a", "b"), 10.0, 10.0), run(("c", "d"), 0.0, 10.0)])
+    )
+    means, hips, trunk_thigh = rows[("a against b", 1)]
+    assert means == pytest.approx([10.0, 10.0, 10.0])
+    assert (hips, trunk_thigh) == pytest.approx((10.0, 0.0))
+    assert rows[("c against d", 1)][1:] == pytest.approx([10.0, 10.0])
+
+
+def test_a_record_with_its_c_reads_the_timing_error_from_its_reference(tmp_path):
+    """The timing error read from a record's C columns is the bundled walk's clinical
+    angles at the true C minus at the registration's C; with a reference that cannot be
+    read it is none."""
+    rows_c, rows_true = np.array([10, 40, 41]), np.array([12, 30, 41])
+    names = ["knee_angle_r", "hip_flexion_l"]
+    folder = _record(tmp_path, names, rows_c, rows_true)
+    run = read_angle_run(folder, {"reference": str(WALK_02_01), "cameras": 1}, True)
+    body = Reference.from_bvh(WALK_02_01)
+    deg = clinical_angles(
+        body.skeleton,
+        body.rotations.double(),
+        SegmentMap.from_roles(body.skeleton, body.model.mapping),
+    ).degrees.numpy()[:, [COORDINATES.index(n) for n in names]]
+    np.testing.assert_allclose(run.timing_error, deg[rows_true] - deg[rows_c], atol=1e-9)
+    assert run.timing_error[2] == pytest.approx([0.0, 0.0])
+    missing = read_angle_run(folder, {"reference": "no/such.bvh", "cameras": 1}, True)
+    assert missing.timing_error is None
+
+
+def _record(folder: Path, names, c, c_true) -> Path:
+    """A per_frame.csv with C columns and zero differences of ``names``."""
+    columns = {"time_s": np.arange(len(c)) / 25.0, "trusted": np.ones(len(c), int)}
+    columns |= {"c": c, "c_true": c_true}
+    for name in names:
+        columns |= {f"diff_{name}": np.zeros(len(c)), f"true_{name}": np.zeros(len(c))}
+    with open(folder / "per_frame.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(list(columns))
+        writer.writerows(zip(*columns.values(), strict=True))
+    return folder
 
 
 def test_a_pair_is_scored_with_the_table_of_the_other_pairs_alone():
