@@ -8,7 +8,11 @@ monotone alignment of the two true 3-D motions, root-normalised (each frame's jo
 root's frame; :func:`true_correspondence`), up to the reference's own repetitions: a walk
 matches another gait cycle of the reference almost as well, so every alignment about as good
 (:func:`true_correspondences`) is true, and the one nearest the registration's C scores it
-(``c_err_mean_best_truth``: against the best one alone; ``c_truths``: how many there are);
+(``c_err_mean_best_truth``: against the best one alone; ``c_truths``: how many there are;
+``c_posture_excess`` and ``_stage1``: how much farther, as a share, the student's postures
+lie from the reference's along the registration's C than along the best true one -- a C
+within :data:`TRUTH_TIE` of it matches the student's postures as well as an equally true
+alignment does, whatever its distance in frames; NaN for the reference itself);
 the true A is the student's local rotations relative to the reference's at that C. :func:`motion.registration.register` recovers C, T
 and A from the silhouettes, edges and colours (and 2-D joints with ``keypoints=true``).
 
@@ -139,6 +143,9 @@ class Truth:
     height: float  # metres
     #: (A, T') every equally true C (:func:`true_correspondences`), C first
     C_alternatives: Tensor
+    #: (T', T) metres, :func:`_posture_cost` of the student against the reference (another
+    #: performer only; ``None`` for the reference itself)
+    posture_cost: Tensor | None = None
 
 
 def _posture_cost(student: Reference, shown: Tensor, reference: Reference) -> Tensor:
@@ -224,12 +231,28 @@ def synthetic_truth(seq, reference: Reference, student: Reference | None) -> Tru
             local[:, j] = local[:, j] @ euler_to_matrix(torch.deg2rad(a_deg[:, j]), order)
     rotation = rotation_about_y(torch.from_numpy(arrays["T_yaw_rad"])) @ local[:, 0]
     joints = torch.from_numpy(arrays["joints3d"])
+    cost = None
     if student is None:
         alternatives = shown[None]
     else:
         alternatives = true_correspondences(student, shown, reference)
+        cost = _posture_cost(student, shown, reference)
     height = float((joints[..., 1].amax(-1) - joints[..., 1].amin(-1)).mean())
-    return Truth(alternatives[0], rotation, joints[:, 0], local, joints, height, alternatives)
+    return Truth(alternatives[0], rotation, joints[:, 0], local, joints, height, alternatives, cost)
+
+
+def posture_excess(cost: Tensor | None, c: Tensor, best: Tensor) -> float:
+    """How much farther the student's postures lie from the reference's along ``c`` than
+    along ``best`` (``(T',)`` reference frames; ``cost`` ``(T', T)``, :func:`_posture_cost`):
+    mean distance along ``c`` over mean along ``best``, minus 1 (0 where both are 0, inf
+    where only the truth's is: a student identical to the reference); NaN without a cost."""
+    if cost is None:
+        return math.nan
+    frames = torch.arange(len(c))
+    along, truth = float(cost[frames, c].mean()), float(cost[frames, best].mean())
+    if truth == 0.0:
+        return 0.0 if along == 0.0 else math.inf
+    return along / truth - 1.0
 
 
 def _bone_directions(reference: Reference, joints: list[int]) -> Tensor:
@@ -423,6 +446,8 @@ def run(cfg: RegisterSyntheticConfig):
         "c_err_mean_stage1": float(c_err1.mean()),
         "c_err_mean_best_truth": float((result.C - first_c).abs().double().mean()),
         "c_truths": len(truth.C_alternatives),
+        "c_posture_excess": posture_excess(truth.posture_cost, result.C, first_c),
+        "c_posture_excess_stage1": posture_excess(truth.posture_cost, result.C_stage1, first_c),
         "t_rot_err_deg_mean": float(t_rot.mean()),
         "t_pos_err_mean": float(t_pos.mean()),
         "a_err_deg_mean": float(a_err.mean()),
@@ -604,6 +629,7 @@ def _first(video, truth: Truth, n: int):
         truth.joints[:n],
         truth.height,
         truth.C_alternatives[:, :n],
+        None if truth.posture_cost is None else truth.posture_cost[:n],
     )
     return video, cut
 

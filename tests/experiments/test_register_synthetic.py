@@ -16,10 +16,12 @@ from experiments.register_synthetic import (
     _bone_direction_error_deg,
     _bone_directions,
     _long_bones,
+    _posture_cost,
     _swing_error_deg,
     angle_error_metrics,
     finding_agreement,
     nearest_truth,
+    posture_excess,
     true_correspondence,
     true_correspondences,
     true_differences,
@@ -58,6 +60,22 @@ def test_a_repeated_reference_has_two_equally_true_alignments_and_a_plain_one_ha
     )
     alone = true_correspondences(ref, torch.arange(40, 200, 4), ref)
     assert alone.shape[0] == 1 and torch.equal(alone[0], torch.arange(40, 200, 4))
+
+
+def test_a_c_off_the_truth_is_scored_by_how_much_farther_its_postures_lie():
+    """Against itself, the warp's C has excess 0 and a C 30 frames late an infinite one
+    (its postures differ, the truth's do not); by hand on a 2 x 3 cost, C = (1, 2) against the
+    truth (0, 2) costs (4 + 1) / (2 + 1) - 1 = 2/3; no cost (the reference's own student)
+    gives NaN."""
+    ref = Reference.from_bvh(WALK)
+    shown = time_warp(40, ref.num_frames - 40, 0.3, torch.Generator().manual_seed(4))
+    cost = _posture_cost(ref, shown, ref)
+    assert posture_excess(cost, shown, shown) == 0.0
+    assert posture_excess(cost, shown + 30, shown) == math.inf
+    by_hand = torch.tensor([[2.0, 4.0, 9.0], [7.0, 5.0, 1.0]])
+    c, best = torch.tensor([1, 2]), torch.tensor([0, 2])
+    assert posture_excess(by_hand, c, best) == pytest.approx(2 / 3)
+    assert math.isnan(posture_excess(None, c, best))
 
 
 def test_swing_error_ignores_twist_about_the_bone_and_measures_a_bend():
