@@ -6,9 +6,10 @@ Canny edges and their distance transform, exactly as ``motion.features`` compute
 video -- and, per frame, a start posture: the truth with uniform noise of +-``noise_deg`` on
 every angle of every part's joint (the root's orientation and position kept). Particle BP
 over the body graph of ``motion.body`` (15 SE(3) parts, annealed connections, the
-occlusion-aware observation factor with the chosen cues) refines it, as ``starts``
-independent searches (one batch) of which each frame keeps the one whose rendering explains
-the images best (:mod:`motion.body.select`); errors are the proposal's E_2D and E_3D (Eqs.
+occlusion-aware observation factor with the chosen cues) refines it
+(:func:`motion.body.solve.solve_posture`), as ``starts`` independent searches (one batch) of
+which each frame keeps the one whose rendering explains the images best
+(:mod:`motion.body.select`); errors are the proposal's E_2D and E_3D (Eqs.
 36-37): mean landmark distance over the figure's height, in camera 0's image and in 3-D.
 ``e3d_depth_oracle_mean`` is E_3D once every part's depth flip in camera 0 and the body's
 depth are set right (:mod:`motion.body.ambiguity`): the error one orthographic view could in
@@ -43,8 +44,7 @@ from motion.body.observation import (
     PartShapes,
     Silhouette,
 )
-from motion.body.polish import polish
-from motion.body.select import best_per_frame, render_residual
+from motion.body.solve import Images, PostureSettings, anneal_schedule, solve_posture
 from motion.body.spec import BodySpec
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
@@ -54,7 +54,6 @@ from motion.features import distance_to_edges, edges
 from motion.kinematics import Skeleton, euler_to_matrix, forward_kinematics, local_rotations
 from motion.render import label_map, project_parts, render_intensity, silhouette
 from motion.settings import setting
-from pgm import SE3, Constant, Geometric, MaxSemiring, particle_bp
 
 CUES = ("silhouette", "edges", "intensity", "joints")
 KEYPOINT_NOISE_PX = 2.0  # std of the simulated detector's 2-D joints (the joints cue)
@@ -233,12 +232,20 @@ def _cues(cfg: NbpSingleImageConfig, spec: BodySpec) -> list:
     return [make[c]() for c in cfg.cues]
 
 
-def _anneal(cfg: NbpSingleImageConfig, end: float):
-    """A geometric schedule from 1 to ``end`` over the iterations, or (annealing off) the
-    geometric mean of that range throughout (the same average spread, not shrinking)."""
-    if cfg.annealing:
-        return Geometric(1.0, end, cfg.iterations)
-    return Constant(math.sqrt(end))
+def _posture_settings(cfg: NbpSingleImageConfig) -> PostureSettings:
+    """The posture solver's settings: the config's search; the start spread and the
+    proposal kernels' spreads (2 cm, 0.5 rad: kernel_end's doc) at :class:`PostureSettings`'
+    defaults."""
+    return PostureSettings(
+        particles=cfg.particles,
+        iterations=cfg.iterations,
+        restarts=cfg.restarts,
+        searches=cfg.starts,
+        kernel_end=cfg.kernel_end,
+        annealing=cfg.annealing,
+        proposal=cfg.proposal,
+        polish=cfg.polish,
+    )
 
 
 def _errors(spec: BodySpec, rig: CameraRig, truth: torch.Tensor, poses: torch.Tensor):
@@ -281,36 +288,22 @@ def run(cfg: NbpSingleImageConfig):
         spec,
         t,
         [(torch.arange(t * p), unary)],
-        Connections(pos_std=0.02, rot_std=1.0, schedule=_anneal(cfg, 0.25), limits=spec.limits),
+        Connections(
+            pos_std=0.02,
+            rot_std=1.0,
+            schedule=anneal_schedule(0.25, it, cfg.annealing),
+            limits=spec.limits,
+        ),
         Temporal() if cfg.temporal else None,
     )
-    k, s = cfg.particles, cfg.starts
-    initial = SE3().perturb(start.reshape(1, t * p, 1, 7).expand(s, t * p, k, 7), (0.02, 0.1), g)
     note(
-        f"nbp_single_image: {t} frames x {p} parts x {k} particles, {cfg.restarts} x {it} "
-        f"iterations, {s} searches"
+        f"nbp_single_image: {t} frames x {p} parts x {cfg.particles} particles, "
+        f"{cfg.restarts} x {it} iterations, {cfg.starts} searches"
     )
+    colours = _part_colours(p) if "intensity" in cfg.cues else None
+    images = Images(spec, rig, obs, colours, cfg.intensity_weight)
     t0 = time.perf_counter()
-    result = particle_bp(
-        graph,
-        initial,
-        iterations=it,
-        restarts=cfg.restarts,
-        generator=g,
-        semiring=MaxSemiring(),
-        proposal=cfg.proposal,
-        kernel_scale=(0.02, 0.5),
-        kernel_schedule=_anneal(cfg, cfg.kernel_end),
-        proposal_centres=min(30, k),
-    )
-    colours = _part_colours(p)
-    colours = colours if "intensity" in cfg.cues else None
-    searches = result.best.reshape(s, t, p, 7)
-    estimate, _ = best_per_frame(
-        searches, render_residual(shapes, rig, obs, searches, colours, cfg.intensity_weight)
-    )
-    if cfg.polish:
-        estimate = polish(spec, rig, obs, estimate, colours)
+    estimate = solve_posture(graph, start, _posture_settings(cfg), g, images).poses
     seconds = time.perf_counter() - t0
     e2_init, e3_init = _errors(spec, rig, truth, start)
     e2, e3 = _errors(spec, rig, truth, estimate)

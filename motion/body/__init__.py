@@ -4,5 +4,6 @@
 a motion; :mod:`motion.body.limits` -- joint-angle limits per kinematic edge;
 :mod:`motion.body.graph` -- the factor graph over frames; :mod:`motion.body.observation` --
 occlusion-aware observation factors (the proposal's Eqs. 28-29) whose cues score what one
-shared renderer produced.
+shared renderer produced; :mod:`motion.body.solve` -- the posture solver on such a graph
+(start particles, particle BP, the choice among searches, the polish).
 """

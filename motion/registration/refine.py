@@ -51,6 +51,7 @@ from motion.body.observation import (
     Silhouette,
     body_layers,
 )
+from motion.body.solve import PostureSettings, solve_posture
 from motion.registration.types import (
     FRAME_CHUNK,
     Reference,
@@ -69,11 +70,9 @@ from pgm import (
     Discrete,
     Geometric,
     LookupPose,
-    MaxSemiring,
     ParticleGraph,
     RigidConnection,
     SpatioTemporalTemplate,
-    particle_bp,
 )
 from pgm.rotations import qconj, qmul, qrotate
 
@@ -449,7 +448,8 @@ def _run_window(
     couple: bool,
     generator: torch.Generator,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """One particle BP run over a window. Returns part poses ``(n, P, 7)``, C ``(n,)``
+    """One particle BP run over a window (:func:`motion.body.solve.solve_posture` on the
+    window's graph). Returns part poses ``(n, P, 7)``, C ``(n,)``
     (unchanged without ``couple``) and each part's orientation spread ``(n, P)`` degrees
     (:func:`rotation_spread_deg`)."""
     s = problem.settings
@@ -490,23 +490,8 @@ def _run_window(
         start = place_poses(rotation, translation, problem.body[c])  # (n, P, 7)
         unaries.append((body_nodes, PosturePrior(start, s.prior_pos_std, s.prior_rot_std)))
     graph = ParticleGraph(v_body + (n if couple else 0), spaces, pairwise, unaries)
-    k = s.particles
-    initial = torch.zeros(1, graph.num_nodes, k, 7)
-    initial[:, :v_body] = SE3().perturb(
-        start.reshape(1, v_body, 1, 7).expand(1, v_body, k, 7).float(), (0.02, 0.1), generator
-    )
-    result = particle_bp(
-        graph,
-        initial,
-        iterations=s.iterations,
-        restarts=s.restarts,
-        generator=generator,
-        semiring=MaxSemiring(),
-        kernel_scale=[s.kernel_scale, None] if couple else s.kernel_scale,
-        kernel_schedule=Geometric(1.0, s.kernel_end, s.iterations),
-        proposal_centres=min(30, k),
-    )
-    poses = result.best[0, :v_body].reshape(n, p, 7)
+    solution = solve_posture(graph, start, _posture_settings(s), generator)
+    result, poses = solution.result, solution.poses
     spread = rotation_spread_deg(
         result.particles[0, :v_body], result.log_weights[0, :v_body], result.best[0, :v_body]
     ).reshape(n, p)
@@ -514,6 +499,18 @@ def _run_window(
         return poses, c, spread
     chosen = result.best[0, v_body:, 0].round().long()
     return poses, states.gather(1, chosen[:, None]).squeeze(1), spread
+
+
+def _posture_settings(settings: RefineSettings) -> PostureSettings:
+    """The posture solver's settings of one window: one search, no polish (registration
+    fits and polishes the skeleton itself), the rest :class:`PostureSettings`' defaults."""
+    return PostureSettings(
+        particles=settings.particles,
+        iterations=settings.iterations,
+        restarts=settings.restarts,
+        kernel_scale=settings.kernel_scale,
+        kernel_end=settings.kernel_end,
+    )
 
 
 def rotation_spread_deg(particles: Tensor, log_weights: Tensor, best: Tensor) -> Tensor:

@@ -16,12 +16,13 @@ import torch
 
 from motion.body.graph import Connections, PosturePrior, body_graph
 from motion.body.limits import edge_limits
+from motion.body.solve import PostureSettings, solve_posture
 from motion.body.spec import BodySpec
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
 from motion.limits import limit_violation, limits_tensor, load_limits
-from pgm import SE3, Geometric, LimitedConnection, MaxSemiring, RigidConnection, particle_bp
+from pgm import Geometric, LimitedConnection, RigidConnection
 from tests.motion.body.conftest import F64, ROBOT_ARM, WALK
 
 ARM = ROBOT_ARM
@@ -182,18 +183,16 @@ def test_particle_bp_brings_a_backwards_knee_inside_the_limits(walk, limited):
         limits=spec.limits if limited else None,
     )
     graph = body_graph(spec, 1, priors, connections)
-    g = torch.Generator().manual_seed(0)
-    init = SE3().perturb(start.reshape(1, p, 1, 7).expand(1, p, 60, 7), (0.02, 0.1), g)
-    result = particle_bp(
-        graph,
-        init,
+    settings = PostureSettings(
+        particles=60,
         iterations=10,
-        generator=g,
-        semiring=MaxSemiring(),
+        restarts=1,
         kernel_scale=(0.02, 0.3),
-        kernel_schedule=Geometric(1.0, 0.1, 10),
+        kernel_end=0.1,
+        proposal_centres=None,
     )
-    excess = spec.limits.excess(spec, result.best[0].reshape(1, p, 7).double())[0]
+    poses = solve_posture(graph, start, settings, torch.Generator().manual_seed(0)).poses
+    excess = spec.limits.excess(spec, poses.double())[0]
     if limited:
         assert excess.max() < 0.15, excess.rad2deg()
     else:

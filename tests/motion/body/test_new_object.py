@@ -16,13 +16,14 @@ import torch
 
 from motion.body.graph import Connections, body_graph
 from motion.body.observation import BodyObservation, Edges, Observation, PartShapes, Silhouette
+from motion.body.solve import PostureSettings, solve_posture
 from motion.body.spec import part_tree
 from motion.bodyparts import DEFAULT_PARTS, BodyModel, BodyPartMappingError, read_parts
 from motion.cameras import CameraRig
 from motion.features import distance_to_edges, edges
 from motion.kinematics import forward_kinematics, local_rotations
 from motion.render import project_parts, silhouette
-from pgm import SE3, Geometric, MaxSemiring, particle_bp
+from pgm import Geometric
 from tests.motion.body.conftest import F64, ROBOT_ARM
 
 ARM = ROBOT_ARM
@@ -138,20 +139,9 @@ def test_particle_bp_refines_the_arm_from_two_views(arm):
             pos_std=0.02, rot_std=0.5, schedule=Geometric(1.0, 0.25, 6), limits=spec.limits
         ),
     )
-    g = torch.Generator().manual_seed(1)
-    init = SE3().perturb(start.float().reshape(1, p, 1, 7).expand(1, p, k, 7), (0.02, 0.1), g)
-    result = particle_bp(
-        graph,
-        init,
-        iterations=8,
-        restarts=2,
-        generator=g,
-        semiring=MaxSemiring(),
-        kernel_scale=(0.02, 0.5),
-        kernel_schedule=Geometric(1.0, 0.03, 8),
-        proposal_centres=30,
-    )
+    settings = PostureSettings(particles=k, iterations=8, restarts=2, kernel_end=0.03)
+    poses = solve_posture(graph, start, settings, torch.Generator().manual_seed(1)).poses
     before = (spec.landmarks(start.float()) - seg).norm(dim=-1).mean()
-    after = (spec.landmarks(result.best[0].reshape(1, p, 7)) - seg).norm(dim=-1).mean()
+    after = (spec.landmarks(poses) - seg).norm(dim=-1).mean()
     assert before > 0.05, before  # the start is well off
     assert after < 0.5 * before and after < 0.045, (before, after)
