@@ -77,12 +77,20 @@ class _Batch:
         self.obs_w = s.obs_w[rows].permute(1, 2, 0).contiguous()  # (C, M, n)
         self.h = s.height[rows].T.contiguous()  # (C, n) px
         self.cam = s.cam_w[rows].T / self.h.square()  # (C, n) weight of squared px
+        st = s.settings
+        # square roots of the silhouette pixels' weights (C, M, n): fixed during the fit
+        self.unc_sw = (st.uncovered_weight * self.obs_w * self.cam[:, None]).sqrt_()
         self.kp = None
         if s.keypoints is not None:
             self.kp = s.keypoints[rows].permute(1, 3, 2, 0).contiguous()  # (C, 3, K, n)
             kx = s.joints[cols][:, s.kp_joints]  # (n, K, 3)
             self.kp_x = kx.permute(2, 1, 0).contiguous()  # (3, K, n)
-            self.cam_w = s.cam_w[rows].T.contiguous()
+            # the joints' weights and Cauchy scales (C, K, n), fixed during the fit
+            conf = self.kp[:, 2].clamp_min(0) * s.cam_w[rows].T[:, None]
+            norm = conf.sum(1, keepdim=True).clamp_min(1e-9)
+            self.kp_sig2 = (st.keypoint_sigma * self.h).square()[:, None]  # (C, 1, n) px^2
+            self.kp_w = st.keypoint_weight * conf / norm / self.h.square()[:, None]
+            self.kp_wsig2 = self.kp_w * self.kp_sig2
 
     def _project(self, xr: list[Tensor], p: Tensor, jac: bool):
         """Points ``xr`` (3 components ``(L, n)``: rotated, scaled, relative to the root) at
@@ -138,11 +146,15 @@ class _Batch:
 
     def _lookup(self, pair_map: Tensor, pu: Tensor, pv: Tensor, jac: bool):
         """Bilinear read of a paired map (:func:`_pair_map`) at pixels ``pu, pv`` ``(C, P, S,
-        n)``, clamped to the image (outside points read the border): value and, with ``jac``,
-        its gradient ``(gu, gv)`` (0 across a clamped border)."""
+        n)``, clamped to the image (outside points read the border): value, with ``jac`` its
+        gradient ``(gu, gv)`` (or ``None``), and ``seen``, whether the point is in the image
+        (unclamped). The gradient of an unseen point is that of the border pixel: the caller
+        zeroes it."""
         s = self.s
         u = pu.clamp(0, s.W - 1)
         v = pv.clamp(0, s.H - 1)
+        # in the image exactly where the clamp changed nothing (NaN compares unequal too)
+        seen = (u == pu) & (v == pv)
         u0 = u.floor().clamp_(max=s.W - 2)
         v0 = v.floor().clamp_(max=s.H - 2)
         fu, fv = u - u0, v - v0
@@ -159,11 +171,9 @@ class _Batch:
         gv = torch.addcmul(f10, fu, d_bottom).sub_(upper)
         val = torch.addcmul(upper, fv, gv)
         if not jac:
-            return val, None, None
+            return val, None, None, seen
         gu = torch.addcmul(d_top, fv, d_bottom.sub_(d_top))
-        gu = gu.mul_(1 - _step((pu - u).abs_()))  # no gradient across a clamped border
-        gv = gv.mul_(1 - _step((pv - v).abs_()))
-        return val, gu, gv
+        return val, gu, gv, seen
 
     def _points(self, canon, blend, pair_map, ends, radii, weight, cut, unseen, area, jac, acc):
         """Squared truncated map distances at sample points (interior or outline) of the
@@ -183,13 +193,12 @@ class _Batch:
         pv = torch.addcmul(torch.addcmul(av, s_ax, dv), ra, ev).add_(rb * eu)
         w = r * torch.addcmul(c_len * length, c_rad, r) if area else c_len * length + c_rad * r
         w = w / w.sum((1, 2), keepdim=True).clamp_min(1e-12)
-        val, gu, gv = self._lookup(pair_map, pu, pv, jac)
-        s = self.s
-        seen = (pu >= 0) & (pu <= s.W - 1) & (pv >= 0) & (pv <= s.H - 1)
+        val, gu, gv, seen = self._lookup(pair_map, pu, pv, jac)
         sw = (w * (weight * self.cam)[:, None, None]).sqrt_()
         res = sw * torch.where(seen, val.minimum(cut), unseen * cut)
         if jac:
-            live = sw * _step(cut - val) * seen  # no gradient beyond the truncation
+            # no gradient beyond the truncation, nor at unseen points (outside the image)
+            live = sw * _step(cut - val) * seen
             gu, gv = gu.mul_(live), gv.mul_(live)
             quad, lin = blend
             for gg, (ga, gb) in enumerate(((gu, gu), (gu, gv), (gv, gv))):
@@ -203,16 +212,45 @@ class _Batch:
         with ``jac`` the normal equations ``J^T J (n, D, D)`` and gradient ``J^T r (n, D)``."""
         s, st = self.s, self.s.settings
         n, dof = self.n, self.dof
-        c = s.num_cameras
-        dt = rot.dtype
         r = rot.permute(1, 2, 0)  # (3, 3, n)
         sc = log_s.exp() if log_s is not None else None
+        terms = []  # (cost (n,), J^T J (D, D, n), J^T r (D, n)) of each term that weighs
+        # the capsules' projection is skipped where no image term weighs (2-D joints only)
+        if (
+            st.outside_weight > 0
+            or st.uncovered_weight > 0
+            or (s.edist is not None and st.edge_weight > 0)
+        ):
+            terms.append(self._image(r, p.T, sc, jac))
+        if self.kp is not None and st.keypoint_weight > 0:
+            terms.append(self._keypoints(r, p.T, sc, jac))
+        cost = torch.zeros(n, dtype=rot.dtype)
+        jtj = g = None
+        for t_cost, t_jtj, t_g in terms:
+            cost = cost + t_cost
+            if jac:
+                jtj = t_jtj if jtj is None else jtj + t_jtj
+                g = t_g if g is None else g + t_g
+        if not jac:
+            return cost, None, None
+        if jtj is None:  # no term weighs: nothing moves the pose
+            jtj, g = torch.zeros(dof, dof, n, dtype=rot.dtype), torch.zeros(dof, n, dtype=rot.dtype)
+        return cost, jtj.permute(2, 0, 1), g.T
+
+    def _image(self, r: Tensor, p: Tensor, sc: Tensor | None, jac: bool):
+        """The silhouette and edge terms at rotation ``r (3, 3, n)``, root ``p (3, n)`` (and
+        scale ``sc (n,)``): cost ``(n,)`` and ``J^T J (D, D, n)``, ``J^T r (D, n)`` (or
+        ``None``)."""
+        s, st = self.s, self.s.settings
+        n, dof = self.n, self.dof
+        c = s.num_cameras
+        dt = r.dtype
         lm = self.lm if sc is None else self.lm * sc
         xr = [
             torch.addcmul(torch.addcmul(r[i, 0] * lm[0], r[i, 1], lm[1]), r[i, 2], lm[2])
             for i in range(3)
         ]  # (L, n)
-        u, v, zi, jl = self._project(xr, p.T, jac)  # (C, L, n)
+        u, v, zi, jl = self._project(xr, p, jac)  # (C, L, n)
         num_p = u.shape[1] // 2
         u, v = u.view(c, num_p, 2, n), v.view(c, num_p, 2, n)
         ends = (u[:, :, 0], v[:, :, 0], u[:, :, 1], v[:, :, 1])  # a_u, a_v, b_u, b_v (C, P, n)
@@ -268,33 +306,34 @@ class _Batch:
             jl = jl.reshape(x, dof, n)
             jtj = (jl.unsqueeze(2) * t1.reshape(x, 1, dof, n)).sum(0)  # (D, D, n)
             g = (jl * b).sum(0)  # (D, n)
-        if self.kp is not None and st.keypoint_weight > 0:
-            kc, kj, kg = self._keypoints(r, p.T, sc, jac)
-            cost = cost + kc
-            if jac:
-                jtj = jtj + kj
-                g = g + kg
-        if not jac:
-            return cost, None, None
-        return cost, jtj.permute(2, 0, 1), g.T
+        return cost, jtj, g
 
-    def _uncovered(self, ends, radii, cut, jac, acc):
-        """Silhouette pixels (the fixed subsample) against their distance to the nearest
-        capsule (0 when covered), truncated at ``cut (C, 1, n)`` px. Returns the cost."""
-        st = self.s.settings
-        au, av, bu, bv = (e.unsqueeze(2) for e in ends)  # (C, P, 1, n)
-        r1, r2 = (r.unsqueeze(2) for r in radii)
-        c, p, _, n = au.shape
-        du, dv = bu - au, bv - av
-        inv = torch.addcmul(du * du, dv, dv).clamp_min_(1e-9).reciprocal_()
-        ru, rv = self.ou - au, self.ov - av  # (C, P, M, n)
+    @staticmethod
+    def _to_axis(ou, ov, au, av, du, dv, inv):
+        """Pixels ``ou, ov`` against segments from ``a`` along ``d`` (``inv = 1 / |d|^2``),
+        broadcast: the nearest point's place ``t`` in [0, 1], the offset ``xu, xv`` from it and
+        its length."""
+        ru, rv = ou - au, ov - av
         t = torch.addcmul(ru * du, rv, dv).mul_(inv).clamp_(0, 1)
         xu = torch.addcmul(ru, t, du, value=-1)
         xv = torch.addcmul(rv, t, dv, value=-1)
         dist = torch.addcmul(xu * xu, xv, xv).clamp_min_(1e-12).sqrt_()
-        sd = dist - torch.addcmul(r1, t, r2 - r1)
+        return t, xu, xv, dist
+
+    def _uncovered(self, ends, radii, cut, jac, acc):
+        """Silhouette pixels (the fixed subsample) against their distance to the nearest
+        capsule (0 when covered), truncated at ``cut (C, 1, n)`` px. Returns the cost."""
+        au, av, bu, bv = ends  # (C, P, n)
+        r1, r2 = radii
+        c, p, n = au.shape
+        du, dv = bu - au, bv - av
+        inv = torch.addcmul(du * du, dv, dv).clamp_min_(1e-9).reciprocal_()
+        seg = (au, av, du, dv, inv)
+        t, _, _, dist = self._to_axis(self.ou, self.ov, *(x.unsqueeze(2) for x in seg))
+        sd = dist - torch.addcmul(r1.unsqueeze(2), t, (r2 - r1).unsqueeze(2))  # (C, P, M, n)
+        del t, dist
         near = sd.amin(1)  # (C, M, n)
-        sw = (st.uncovered_weight * self.obs_w * self.cam[:, None]).sqrt_()
+        sw = self.unc_sw
         res = sw * near.clamp(0).minimum(cut)
         if jac:
             # the nearest part's index: parts - 1e6 (sd - near) peaks there (float arithmetic;
@@ -302,12 +341,17 @@ class _Batch:
             parts = torch.arange(p, dtype=sd.dtype)[:, None, None]
             k = torch.addcmul(parts, sd - near.unsqueeze(1), torch.tensor(-1e6, dtype=sd.dtype))
             k = k.amax(1).round_().long().clamp_(0, p - 1)  # (C, M, n)
-            kk = k.unsqueeze(1)
-            t_k = t.gather(1, kk)[:, 0]
+            # flat index of (c, k, j) in (C, P, n): the nearest part's segment per pixel, and
+            # the pixel's entry of acc's (C, P, n) block
+            col = ((torch.arange(c)[:, None, None] * p + k) * n + torch.arange(n)).reshape(-1)
+            near_seg = (x.reshape(-1).index_select(0, col).view(k.shape) for x in seg)
+            # its t, offset and distance again, from (C, M, n) inputs: the same operations on
+            # the same numbers as above (gathering them from (C, P, M, n) is slower)
+            t_k, xu, xv, dist = self._to_axis(self.ou[:, 0], self.ov[:, 0], *near_seg)
             # d sd / d (a, b) = -(1 - t) e, -t e (e the unit direction from the axis)
-            scale = sw * _step(near) * _step(cut - near) / dist.gather(1, kk)[:, 0]
-            gu = xu.gather(1, kk)[:, 0].mul_(scale).neg_()
-            gv = xv.gather(1, kk)[:, 0].mul_(scale).neg_()
+            scale = sw * _step(near) * _step(cut - near) / dist
+            gu = xu.mul_(scale).neg_()
+            gv = xv.mul_(scale).neg_()
             wa, wb = 1 - t_k, t_k
             vals = torch.empty(13, *res.shape, dtype=res.dtype)
             ww = (wa * wa, wa * wb, wb * wb)
@@ -318,14 +362,12 @@ class _Batch:
                 torch.mul(gk, wa, out=vals[9 + 2 * kk_])
                 torch.mul(gk, wb, out=vals[10 + 2 * kk_])
             # into (13, C, P, n): column (c P + k) n + j
-            col = ((torch.arange(c)[:, None, None] * p + k) * n + torch.arange(n)).reshape(-1)
             acc.view(13, -1).index_add_(1, col, vals.view(13, -1))
         return res.square().sum((0, 1))
 
     def _keypoints(self, r, p, sc, jac):
         """Cauchy-robust 2-D joint term at rotation ``r (3, 3, n)``, root ``p (3, n)``: cost
         ``(n,)`` and (IRLS) ``J^T J (D, D, n)``, ``J^T r (D, n)``."""
-        st = self.s.settings
         x = self.kp_x if sc is None else self.kp_x * sc
         xr = [
             torch.addcmul(torch.addcmul(r[i, 0] * x[0], r[i, 1], x[1]), r[i, 2], x[2])
@@ -333,15 +375,11 @@ class _Batch:
         ]
         u, v, _, jj = self._project(xr, p, jac)  # (C, K, n)
         eu, ev = u - self.kp[:, 0], v - self.kp[:, 1]
-        conf = self.kp[:, 2].clamp_min(0) * self.cam_w[:, None]
-        norm = conf.sum(1, keepdim=True).clamp_min(1e-9)
-        sig2 = (st.keypoint_sigma * self.h).square()[:, None]  # (C, 1, n) px^2
-        d2 = torch.addcmul(eu * eu, ev, ev)
-        w = st.keypoint_weight * conf / norm / self.h.square()[:, None]
-        cost = (w * sig2 * torch.log1p(d2 / sig2)).sum((0, 1))
+        z = torch.addcmul(eu * eu, ev, ev).div_(self.kp_sig2)
+        cost = (self.kp_wsig2 * torch.log1p(z)).sum((0, 1))
         if not jac:
             return cost, None, None
-        irls = (w / (1 + d2 / sig2)).sqrt()  # Cauchy weights at the current residuals
+        irls = (self.kp_w / z.add_(1)).sqrt_()  # Cauchy weights at the current residuals
         jr = jj * irls[:, :, None, None]  # (C, K, 2, D, n)
         res = torch.stack([irls * eu, irls * ev], 2)[:, :, :, None]  # (C, K, 2, 1, n)
         jr = jr.reshape(-1, self.dof, jr.shape[-1])

@@ -28,6 +28,7 @@ from motion.registration.approximate.starts import (
     Init,
     _as_pair_init,
     _keypoint_starts,
+    _keypoint_starts_of,
     _targets,
     _yaw_rotations,
 )
@@ -62,32 +63,45 @@ def _window(scene: _Scene, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return lo, hi, (hi - lo).clamp(min=1).to(scene.landmarks.dtype) / scene.video_rate
 
 
-def _track_at(scene: _Scene, frames: Tensor) -> Tensor:
-    """The person's root position at video ``frames`` ``(n,)`` -> ``(n, 3)`` metres, from the
-    best rigid fit against ``settings.yaw_starts`` evenly spaced reference frames (heading
-    prior off; a mirror-image solution has nearly the same position), computed once per
-    frame when first needed."""
-    need = frames[torch.isnan(scene.track[frames, 0])].unique()
-    if need.numel():
-        st = scene.settings
-        refs = torch.linspace(0, scene.num_ref - 1, st.yaw_starts).round().long().unique()
-        scene.tracking = True
-        try:
-            fit = _best(
-                *_fit_candidates(
-                    scene,
-                    need,
-                    refs.expand(len(need), -1),
-                    st.yaw_starts,
-                    st.refine_starts,
-                    st.iterations,
-                    [],
-                )
+def _track_refs(scene: _Scene, frames: Tensor) -> Tensor:
+    """The reference frames that the track at video ``frames (n,)`` is fitted against:
+    ``settings.yaw_starts`` evenly spaced ones, ``(n, W)``."""
+    refs = torch.linspace(0, scene.num_ref - 1, scene.settings.yaw_starts).round().long().unique()
+    return refs.expand(len(frames), -1)
+
+
+def _fit_track(scene: _Scene, frames: Tensor, kp: Init | None) -> None:
+    """Fit the person's track at video ``frames (n,)`` (unique) into ``scene.track``: the root
+    position of the best rigid fit against :func:`_track_refs` (heading prior off; a
+    mirror-image solution has nearly the same position), with keypoint starts ``kp``
+    (:func:`_keypoint_starts` of those pairs)."""
+    st = scene.settings
+    refs = _track_refs(scene, frames)
+    scene.fits += refs.numel()
+    scene.tracking = True
+    try:
+        fit = _best(
+            *_fit_all_starts(
+                scene, frames, refs, st.yaw_starts, st.refine_starts, st.iterations, [], kp
             )
-        finally:
-            scene.tracking = False
-        k = fit.cost.argmin(-1)
-        scene.track[need] = fit.translation[torch.arange(len(need)), k]
+        )
+    finally:
+        scene.tracking = False
+    k = fit.cost.argmin(-1)
+    scene.track[frames] = fit.translation[torch.arange(len(frames)), k]
+
+
+def _untracked(scene: _Scene, frames: Tensor) -> Tensor:
+    """Those of video ``frames`` whose track is not fitted yet, unique."""
+    return frames[torch.isnan(scene.track[frames, 0])].unique()
+
+
+def _track_at(scene: _Scene, frames: Tensor) -> Tensor:
+    """The person's root position at video ``frames`` ``(n,)`` -> ``(n, 3)`` metres
+    (:func:`_fit_track`), computed once per frame when first needed."""
+    need = _untracked(scene, frames)
+    if need.numel():
+        _fit_track(scene, need, _keypoint_starts(scene, need, _track_refs(scene, need)))
     return scene.track[frames]
 
 
@@ -188,6 +202,52 @@ def _refine_from(
     )
 
 
+def _keypoint_starts_tracked(scene: _Scene, rows: Tensor, cols: Tensor) -> Init | None:
+    """:func:`_keypoint_starts` of pairs ``rows (R,)``, ``cols (R, W)``, after fitting the
+    track (:func:`_fit_track`) at every frame that the heading prior of ``rows`` will read.
+
+    The track is fitted in one batch here rather than on demand (chunk by chunk of the
+    starts' screening, in several small batches), and its keypoint starts are solved together
+    with those of the pairs: much of the keypoint solver's cost
+    (:func:`motion.pose.solve_pose_views`, a fixed number of iterations of small tensor
+    operations) is per call, not per problem. (Its batched products round a little
+    differently with the batch's size: starts agree to float rounding with separate solves.)"""
+    need = torch.zeros(0, dtype=torch.long)
+    if scene.v_ref is not None and not scene.tracking:
+        lo, hi, _ = _window(scene, rows)
+        need = _untracked(scene, torch.cat([lo, hi]))
+    if not need.numel():
+        return _keypoint_starts(scene, rows, cols)
+    kp_track, kp = _keypoint_starts_of(scene, [(need, _track_refs(scene, need)), (rows, cols)])
+    _fit_track(scene, need, kp_track)
+    return kp
+
+
+def _fit_all_starts(
+    scene: _Scene,
+    rows: Tensor,
+    cols: Tensor,
+    yaw_starts: int,
+    refine: int,
+    iterations: int,
+    inits: list[Init],
+    kp: Init | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Every pair ``rows (R,)``, ``cols (R, W)`` refined from all its starts: the ``refine``
+    best of ``yaw_starts`` screened upright starts, each warm start in ``inits`` and the
+    keypoint start ``kp`` (``(R, W, 3, 3)``, ``(R, W, 3)``, or ``None``). Returns
+    :func:`_fit_candidates`'s."""
+    rots, ps = list(_analytic_starts(scene, rows, cols, yaw_starts, refine))
+    rots, ps = [rots], [ps]
+    for er, ep in inits:
+        rots.append(er[:, :, None])
+        ps.append(ep[:, :, None])
+    if kp is not None:
+        rots.append(kp[0][:, :, None])
+        ps.append(kp[1][:, :, None])
+    return _refine_from(scene, rows, cols, torch.cat(rots, 2), torch.cat(ps, 2), iterations)
+
+
 def _fit_candidates(
     scene: _Scene,
     rows: Tensor,
@@ -237,16 +297,8 @@ def _fit_candidates(
             fit.translation[:, near],
             scene.settings.warm_iterations,
         )
-    rots, ps = list(_analytic_starts(scene, rows, cols, yaw_starts, refine))
-    rots, ps = [rots], [ps]
-    for er, ep in inits:
-        rots.append(er[:, :, None])
-        ps.append(ep[:, :, None])
-    kp = _keypoint_starts(scene, rows, cols)
-    if kp is not None:
-        rots.append(kp[0][:, :, None])
-        ps.append(kp[1][:, :, None])
-    return _refine_from(scene, rows, cols, torch.cat(rots, 2), torch.cat(ps, 2), iterations)
+    kp = _keypoint_starts_tracked(scene, rows, cols)
+    return _fit_all_starts(scene, rows, cols, yaw_starts, refine, iterations, inits, kp)
 
 
 def _stride(cols: Tensor, settings: Stage1Settings) -> int:

@@ -44,7 +44,8 @@ class _Scene:
 
     Attributes:
         dout: distance (px) to the nearest silhouette pixel (0 inside) as a paired map
-            (:func:`_pair_map`, ``T' C H W`` entries).
+            (:func:`_pair_map`, ``T' C H W`` entries); ``None`` where
+            ``settings.outside_weight`` is 0 (nothing reads it).
         edist: the same for the distance to the nearest observed edge (or ``None``).
         obs: ``(T', C, M, 2)`` subsampled silhouette pixels; obs_w ``(T', C, M)`` weights
             (summing to 1 per valid image, 0 for padding).
@@ -75,7 +76,7 @@ class _Scene:
             stored as ``(S, 1)`` columns (the batch-last layout of :class:`_Batch`).
     """
 
-    dout: Tensor
+    dout: Tensor | None
     edist: Tensor | None
     obs: Tensor
     obs_w: Tensor
@@ -132,10 +133,12 @@ def _pair_map(maps: Tensor) -> Tensor:
     """A map ``(..., H, W)`` as one flat entry per pixel holding its value and its right
     neighbour's (the last column repeats itself), viewed as one wider number so that one
     gather reads both: float32 pairs as float64, float64 pairs as complex128."""
-    right = torch.cat([maps[..., 1:], maps[..., -1:]], -1)
-    pairs = torch.stack([maps, right], -1).reshape(-1, 2).contiguous()
+    pairs = torch.empty(*maps.shape, 2, dtype=maps.dtype)  # written in place: no temporaries
+    pairs[..., 0] = maps
+    pairs[..., :-1, 1] = maps[..., 1:]
+    pairs[..., -1, 1] = maps[..., -1]
     wide = torch.float64 if maps.dtype == torch.float32 else torch.complex128
-    return pairs.view(wide).reshape(-1)
+    return pairs.view(-1, 2).view(wide).reshape(-1)
 
 
 def _pair_maps(make: Callable[[slice], Tensor], frames: int) -> Tensor:
@@ -237,7 +240,7 @@ def _build_scene(
         d = distance_to_edges(mask[sl].reshape(-1, 1, h, w)).reshape(-1, c, h, w).to(dt)
         return torch.nan_to_num(d, posinf=far)
 
-    dout = _pair_maps(outside, tv)
+    dout = _pair_maps(outside, tv) if settings.outside_weight > 0 else None
     edist = None
     if obs.edge_distance is not None:
         e = obs.edge_distance[0].to(dt)  # no copy when the dtypes agree
