@@ -681,7 +681,7 @@ def solve_pose_views(
     r = rc0.T @ single.R
     t = (single.t - tc0) @ rc0  # R_c0^T (t_single - t_c0), row-vector form
 
-    def residuals(r, t):
+    def residuals(x3, points2d, sw, r, t):
         rx = x3 @ r.transpose(1, 2)  # (B, n, 3): R X
         q = rx + t[:, None]
         pc = torch.einsum("cij,bnj->bcni", R_cam, q) + t_cam[None, :, None]  # (B, C, n, 3)
@@ -689,33 +689,33 @@ def solve_pose_views(
         res = torch.stack([u - points2d[..., 0], v - points2d[..., 1]], -1) * sw
         return res, rx, pc, z
 
-    res, rx, pc, z = residuals(r, t)
+    res, rx, pc, z = residuals(x3, points2d, sw, r, t)
     cost = res.square().sum((1, 2, 3))
+    r_out, t_out, cost_out = r.clone(), t.clone(), cost.clone()
+    # Only problems that have not converged are iterated: most converge in two or three
+    # steps, and a few stragglers would otherwise keep the whole batch for every iteration.
+    index = torch.arange(b)
+    seen = w > 0
     lam = torch.full_like(cost, 1e-3)
     eye = torch.eye(6, dtype=dtype)
+    fx, fy, skew = K[:, 0, 0][None, :, None], K[:, 1, 1][None, :, None], K[:, 0, 1][None, :, None]
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported
-        fx, fy, skew = (
-            K[:, 0, 0][None, :, None],
-            K[:, 1, 1][None, :, None],
-            K[:, 0, 1][None, :, None],
-        )
         zi = 1.0 / z
         zero = torch.zeros_like(zi)
         du = torch.stack([fx * zi, skew * zi, -(fx * pc[..., 0] + skew * pc[..., 1]) * zi * zi], -1)
         dv = torch.stack([zero, fy * zi, -fy * pc[..., 1] * zi * zi], -1)
         dproj = torch.stack([du, dv], -2) @ R_cam[None, :, None]  # (B, C, n, 2, 3): d uv / d q
         j_rot = -(dproj @ skew_matrix(rx)[:, None])  # [R X]_x (B, n, 3, 3)
-        j = (torch.cat([j_rot, dproj], -1) * sw.unsqueeze(-1)).reshape(b, -1, 6)
+        j = (torch.cat([j_rot, dproj], -1) * sw.unsqueeze(-1)).reshape(len(index), -1, 6)
         jtj = j.transpose(1, 2) @ j
-        g = (j.transpose(1, 2) @ res.reshape(b, -1, 1)).squeeze(-1)
+        g = (j.transpose(1, 2) @ res.reshape(len(index), -1, 1)).squeeze(-1)
         diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
         step = _solve_spd(jtj + lam[:, None, None] * (eye * diag.unsqueeze(-1) + 1e-12 * eye), -g)
         r_new = axis_angle_to_rotation_matrix(step[:, :3]) @ r
         t_new = t + step[:, 3:]
-        res_new, rx_new, pc_new, z_new = residuals(r_new, t_new)
+        res_new, rx_new, pc_new, z_new = residuals(x3, points2d, sw, r_new, t_new)
         cost_new = res_new.square().sum((1, 2, 3))
-        seen = w > 0
         better = (
             (cost_new < cost)
             & torch.isfinite(cost_new)
@@ -729,6 +729,11 @@ def solve_pose_views(
         cost = torch.where(better, cost_new, cost)
         lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-9, 1e9)
         done = (better & (improvement <= 1e-10 * cost + 1e-30)) | (lam >= 1e8)
+        r_out[index], t_out[index], cost_out[index] = r, t, cost
         if done.all():
             break
-    return PoseResult(r, t, cost / w.sum((1, 2)).clamp_min(1), it)
+        if done.any():
+            going = (~done).nonzero().squeeze(1)
+            index, x3, points2d, sw, seen = (a[going] for a in (index, x3, points2d, sw, seen))
+            r, t, res, rx, pc, z, cost, lam = (a[going] for a in (r, t, res, rx, pc, z, cost, lam))
+    return PoseResult(r_out, t_out, cost_out / w.sum((1, 2)).clamp_min(1), it)

@@ -161,6 +161,28 @@ def test_multi_view_pose_is_exact_without_noise_and_beats_one_view_with_noise():
     assert _angle_deg(two.R, masked.R).max() < 1e-6
 
 
+def test_multi_view_problems_solved_together_end_where_each_alone_does():
+    """A batch holding slow problems (gross outliers on some joints) beside easy ones: each
+    problem ends where it ends solved alone (the converged ones leave the batch early; a
+    mixed-up write-back would put one problem's pose in another's place)."""
+    from motion.pose import solve_pose_views
+
+    x, _, _, _, g = _problems(b=12, seed=8)
+    r = axis_angle_to_rotation_matrix(0.5 * torch.randn(12, 3, generator=g, dtype=F64))
+    t = 0.3 * torch.randn(12, 3, generator=g, dtype=F64)
+    k, rc, tc = _rig()
+    uv = _views(x, r, t, k, rc, tc) + 2.0 * torch.randn(
+        12, 3, x.shape[1], 2, generator=g, dtype=F64
+    )
+    uv[::4, 0, :3] += 150.0  # every fourth problem: three joints far off in one view
+    together = solve_pose_views(x, uv, k, rc, tc)
+    for i in range(12):
+        alone = solve_pose_views(x[i : i + 1], uv[i : i + 1], k, rc, tc)
+        torch.testing.assert_close(together.cost[i], alone.cost[0], rtol=1e-9, atol=0)
+        assert _angle_deg(together.R[i : i + 1], alone.R).max() < 1e-4
+        torch.testing.assert_close(together.t[i], alone.t[0], rtol=0, atol=1e-6)
+
+
 def _orthographic_problems(b=200, n=21, seed=0, noise_px=0.0):
     """Orthographic camera, 200 px per metre; t_z is irrelevant to the image."""
     g = torch.Generator().manual_seed(seed)
