@@ -387,6 +387,22 @@ def _as_slice(edges: EdgeIndex) -> EdgeIndex:
     return edges
 
 
+_INDEX_DTYPES = (torch.int64, torch.int32)
+
+
+def _select_blocks(table: Tensor, edges: Tensor) -> Tensor:
+    """``table[:, edges]`` for a ``(B, E, K, K)`` table and ``(n,)`` indices.
+
+    index_select copies whole ``(K, K)`` blocks, ~5x faster on CPU than advanced indexing
+    (17 of 120 blocks of 100 x 100). A table whose blocks are stored transposed (a factor
+    that built it as ``psi(b, a)``) is gathered in its own layout and handed back
+    transposed: index_select into row-major blocks reads it element by element, ~35x
+    slower."""
+    if table.stride(-1) != 1 and table.stride(-2) == 1:
+        return table.transpose(-1, -2).index_select(1, edges).transpose(-1, -2)
+    return table.index_select(1, edges)
+
+
 def _check_step_log_potential(step_log_potential: Tensor, max_step: int) -> None:
     if step_log_potential.shape != (max_step + 1,):
         raise ValueError(
@@ -553,7 +569,10 @@ class TableFactor(PairwiseFactor):
             )
         if self.table.shape[1] == 1:
             return self.table
-        return self.table[:, _as_slice(edges)]
+        edges = _as_slice(edges)
+        if isinstance(edges, Tensor) and edges.dim() == 1 and edges.dtype in _INDEX_DTYPES:
+            return _select_blocks(self.table, edges)
+        return self.table[:, edges]
 
 
 class MonotoneFactor(PairwiseFactor):
@@ -798,13 +817,21 @@ class BandedMonotoneFactor(PairwiseFactor):
         return torch.where(allowed, lp, -math.inf).unsqueeze(0)
 
     def _gather_index(self, edges: EdgeIndex, width: int, forward: bool) -> tuple[Tensor, Tensor]:
-        d = self._shift(edges)[:, None, None]
-        i = torch.arange(width)[None, :, None]
-        s = torch.arange(self.max_step + 1)[None, None, :]
-        # forward: target j collects source i = j + d - s; backward: target i collects j = i - d + s
-        src = i + d - s if forward else i - d + s
-        valid = (src >= 0) & (src < width)
-        return src.clamp(0, width - 1), valid  # (E, W, S+1)
+        # Every edge's index once per (width, direction), then the edges asked for: loopy BP
+        # sends through the same edges every iteration, and building the index was a dozen
+        # small tensor operations per message.
+        cache = self.__dict__.setdefault("_index_cache", {})
+        if (width, forward) not in cache:
+            d = self._shift(slice(None))[:, None, None]
+            i = torch.arange(width)[None, :, None]
+            s = torch.arange(self.max_step + 1)[None, None, :]
+            # forward: target j collects source i = j + d - s; backward: target i collects
+            # j = i - d + s
+            src = i + d - s if forward else i - d + s
+            valid = (src >= 0) & (src < width)
+            cache[width, forward] = (src.clamp(0, width - 1), valid)  # (E, W, S+1)
+        src, valid = cache[width, forward]
+        return src[edges], valid[edges]
 
     def message(self, h, edges, forward, semiring, xa=None, xb=None):
         b, e, w = h.shape

@@ -48,6 +48,13 @@ class Semiring:
     selects: bool = False
     #: True where values are log-potentials, so a message may be shifted by a constant
     log_space: bool = True
+    #: True where ``mul``, ``sum`` and ``normalize`` give every element the same bits however
+    #: the elements are batched: only exactly rounded operations (``+``, ``-``, ``max``).
+    #: ``exp`` / ``log`` and long sums are not (torch computes a tensor's tail elements on a
+    #: scalar path that may differ from the vectorised one in the last bit, and a sum's
+    #: order follows the tensor's shape). Where True, loopy BP recomputes only the messages
+    #: that can change and gets the bits of recomputing them all.
+    batch_invariant: bool = False
 
     def from_log(self, log_potential: Tensor) -> Tensor:
         """Map log-potentials into this semiring's domain (identity for log-space semirings)."""
@@ -109,6 +116,7 @@ class MaxSemiring(Semiring):
 
     name = "max"
     selects = True
+    batch_invariant = True
 
     def mul(self, a: Tensor, b: Tensor) -> Tensor:
         return a + b
