@@ -55,6 +55,7 @@ from motion.registration.types import Reference
 __all__ = [
     "AngleRun",
     "ErrorParts",
+    "PelvisRow",
     "calibrate",
     "error_parts",
     "leave_pair_out",
@@ -271,12 +272,28 @@ def error_parts(runs: Sequence[AngleRun]) -> dict[int, dict[str, ErrorParts]]:
 PELVIS = ("lumbar_extension", "hip_flexion_r", "hip_flexion_l")
 
 
-def pelvis_rows(runs: Sequence[AngleRun]) -> list[tuple[str, int, list[float], float, float]]:
-    """Per pair and camera count (runs that know their timing error and every coordinate of
-    :data:`PELVIS`): the mean posture error of each of :data:`PELVIS` over trusted frames,
-    the RMS posture error of the hips' flexion, and the RMS of the hips' flexion minus the
-    lumbar extension (the angle between trunk and thigh, which the pelvis's tilt leaves
-    unchanged), degrees."""
+@dataclass(frozen=True)
+class PelvisRow:
+    """One pair and camera count's posture errors of :data:`PELVIS`, degrees.
+
+    Attributes:
+        pair: ``"reference against student"``. cameras: how many.
+        means: the mean posture error of each of :data:`PELVIS` over trusted frames.
+        hips_rms: the RMS posture error of the hips' flexion.
+        trunk_thigh_rms: the RMS of the hips' flexion minus the lumbar extension (the angle
+            between trunk and thigh, which the pelvis's tilt leaves unchanged).
+    """
+
+    pair: str
+    cameras: int
+    means: list[float]
+    hips_rms: float
+    trunk_thigh_rms: float
+
+
+def pelvis_rows(runs: Sequence[AngleRun]) -> list[PelvisRow]:
+    """A :class:`PelvisRow` per pair and camera count, from the runs that know their timing
+    error and every coordinate of :data:`PELVIS`."""
     groups: dict[tuple[str, int], list[np.ndarray]] = {}
     for run in runs:
         if run.timing_error is None or not set(PELVIS) <= set(run.coordinates):
@@ -289,7 +306,7 @@ def pelvis_rows(runs: Sequence[AngleRun]) -> list[tuple[str, int, list[float], f
     for (pair, cameras), pieces in sorted(groups.items()):
         e = np.concatenate(pieces)
         hips, lumbar = e[:, 1:], e[:, :1]
-        out.append((pair, cameras, list(e.mean(0)), _rms(hips), _rms(hips - lumbar)))
+        out.append(PelvisRow(pair, cameras, e.mean(0).tolist(), _rms(hips), _rms(hips - lumbar)))
     return out
 
 
@@ -469,9 +486,12 @@ def _parts_section(runs: Sequence[AngleRun]) -> list[str]:
             "| RMS: hip flexion | RMS: hip flexion - lumbar extension |",
             "|---|---|---|---|---|",
         ]
-        for pair, cameras, means, hips, trunk_thigh in rows:
-            mean = " / ".join(f"{m:+.1f}" for m in means)
-            lines.append(f"| {pair} | {cameras} | {mean} | {hips:.1f} | {trunk_thigh:.1f} |")
+        for row in rows:
+            mean = " / ".join(f"{m:+.1f}" for m in row.means)
+            lines.append(
+                f"| {row.pair} | {row.cameras} | {mean} | {row.hips_rms:.1f} "
+                f"| {row.trunk_thigh_rms:.1f} |"
+            )
     return lines
 
 

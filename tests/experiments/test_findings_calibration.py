@@ -117,14 +117,11 @@ def test_one_shared_pelvis_tilt_leaves_the_trunk_to_thigh_angle_right():
             timing_error=zeros,
         )
 
-    rows = dict(
-        ((p, c), rest)
-        for p, c, *rest in pelvis_rows([run(("a", "b"), 10.0, 10.0), run(("c", "d"), 0.0, 10.0)])
-    )
-    means, hips, trunk_thigh = rows[("a against b", 1)]
-    assert means == pytest.approx([10.0, 10.0, 10.0])
-    assert (hips, trunk_thigh) == pytest.approx((10.0, 0.0))
-    assert rows[("c against d", 1)][1:] == pytest.approx([10.0, 10.0])
+    tilted, own = pelvis_rows([run(("a", "b"), 10.0, 10.0), run(("c", "d"), 0.0, 10.0)])
+    assert (tilted.pair, tilted.cameras) == ("a against b", 1)
+    assert tilted.means == pytest.approx([10.0, 10.0, 10.0])
+    assert (tilted.hips_rms, tilted.trunk_thigh_rms) == pytest.approx((10.0, 0.0))
+    assert (own.pair, own.hips_rms, own.trunk_thigh_rms) == ("c against d", 10.0, 10.0)
 
 
 def test_a_record_with_its_c_reads_the_timing_error_from_its_reference(tmp_path):
