@@ -28,7 +28,6 @@ from motion.registration.approximate.starts import (
     Init,
     _as_pair_init,
     _keypoint_starts,
-    _keypoint_starts_of,
     _targets,
     _yaw_rotations,
 )
@@ -204,23 +203,15 @@ def _refine_from(
 
 def _keypoint_starts_tracked(scene: _Scene, rows: Tensor, cols: Tensor) -> Init | None:
     """:func:`_keypoint_starts` of pairs ``rows (R,)``, ``cols (R, W)``, after fitting the
-    track (:func:`_fit_track`) at every frame that the heading prior of ``rows`` will read.
-
-    The track is fitted in one batch here rather than on demand (chunk by chunk of the
-    starts' screening, in several small batches), and its keypoint starts are solved together
-    with those of the pairs: much of the keypoint solver's cost
-    (:func:`motion.pose.solve_pose_views`, a fixed number of iterations of small tensor
-    operations) is per call, not per problem. (Its batched products round a little
-    differently with the batch's size: starts agree to float rounding with separate solves.)"""
-    need = torch.zeros(0, dtype=torch.long)
+    track (:func:`_fit_track`) at every frame that the heading prior of ``rows`` will read:
+    in one batch here, rather than on demand chunk by chunk of the starts' screening (several
+    small batches, each with its own keypoint solve and LM)."""
     if scene.v_ref is not None and not scene.tracking:
         lo, hi, _ = _window(scene, rows)
         need = _untracked(scene, torch.cat([lo, hi]))
-    if not need.numel():
-        return _keypoint_starts(scene, rows, cols)
-    kp_track, kp = _keypoint_starts_of(scene, [(need, _track_refs(scene, need)), (rows, cols)])
-    _fit_track(scene, need, kp_track)
-    return kp
+        if need.numel():
+            _fit_track(scene, need, _keypoint_starts(scene, need, _track_refs(scene, need)))
+    return _keypoint_starts(scene, rows, cols)
 
 
 def _fit_all_starts(

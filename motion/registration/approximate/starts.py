@@ -121,21 +121,6 @@ def _keypoint_starts(scene: _Scene, rows: Tensor, cols: Tensor) -> Init | None:
     return rot, p.reshape(r, w, 3)
 
 
-def _keypoint_starts_of(scene: _Scene, pairs: list[tuple[Tensor, Tensor]]) -> list[Init | None]:
-    """:func:`_keypoint_starts` of several sets of pairs ``rows (R_i,)``, ``cols (R_i, W_i)``
-    in one solve (its cost is mostly per call): one start ``(R_i, W_i, 3, 3)``,
-    ``(R_i, W_i, 3)`` or ``None`` per set."""
-    rows = torch.cat([r[:, None].expand_as(c).reshape(-1) for r, c in pairs])
-    kp = _keypoint_starts(scene, rows, torch.cat([c.reshape(-1) for _, c in pairs])[:, None])
-    if kp is None:
-        return [None] * len(pairs)
-    sizes = [c.numel() for _, c in pairs]
-    return [
-        (rot.reshape(*c.shape, 3, 3), p.reshape(*c.shape, 3))
-        for rot, p, (_, c) in zip(kp[0].split(sizes), kp[1].split(sizes), pairs, strict=True)
-    ]
-
-
 def _as_pair_init(init: Init | None, rows: Tensor, cols: Tensor, dt) -> Init | None:
     """A warm start ``(R, W, 3, 3)``+``(R, W, 3)`` or per row ``(R, 3, 3)``+``(R, 3)``, checked
     and expanded to ``(R, W, ...)``."""
