@@ -67,6 +67,7 @@ from motion.kinematics import forward_kinematics
 from motion.metrics import rotation_angle_error_deg
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
+from motion.registration.config import override
 from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import check_movement
@@ -128,6 +129,12 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "steps of the polish's fit of the student's proportions, where there are 2-D joints "
         "(0, motion register's default: the reference's proportions; 100: fitted)",
         ge=0,
+    )
+    registration: dict[str, float] = setting(
+        {},
+        "any other numeric setting of the registration by its dotted key, as `motion "
+        "register` names it under `registration` (refine.articulation_std: 0.15), applied "
+        "after the fields above",
     )
 
 
@@ -341,13 +348,16 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         # could not reach it (docs/decisions/004-tuning-evidence.md)
         band=min(24, (cfg.particles - 1) // 2),
     )
-    return RegistrationSettings(
+    settings = RegistrationSettings(
         Stage1Settings(),
         refine,
         PosturePolishSettings(steps=cfg.polish_steps, proportion_steps=cfg.proportion_steps),
         scale=cfg.scale or None,
         seed=cfg.seed,
     )
+    for key, value in cfg.registration.items():  # a bad key or value: a ConfigError naming it
+        settings = override(settings, key, value, where="registration")
+    return settings
 
 
 def run(cfg: RegisterSyntheticConfig):

@@ -11,12 +11,15 @@ import math
 import pytest
 import torch
 
+from experiments.config import ConfigError
 from experiments.register_synthetic import (
+    RegisterSyntheticConfig,
     Truth,
     _bone_direction_error_deg,
     _bone_directions,
     _long_bones,
     _posture_cost,
+    _settings,
     _swing_error_deg,
     angle_error_metrics,
     finding_agreement,
@@ -206,3 +209,18 @@ def test_bone_direction_error_measures_a_bend_and_ignores_a_twist_and_the_skelet
     twisted[:, forearm] = twisted[:, forearm] @ torch.linalg.matrix_exp(math.radians(40) * kk)
     err = _bone_direction_error_deg(ref, long, ref.posture_frames(twisted).positions, true)
     assert float(err.max()) < 1e-5
+
+
+def test_any_registration_setting_is_set_by_its_dotted_key_and_a_wrong_one_is_refused():
+    base = _settings(RegisterSyntheticConfig())
+    cfg = RegisterSyntheticConfig(
+        registration={"refine.articulation_std": 0.15, "polish.steps": 7}, polish_steps=50
+    )
+    settings = _settings(cfg)
+    assert settings.refine.articulation_std == 0.15 != base.refine.articulation_std
+    assert settings.polish.steps == 7  # applied after the experiment's own fields
+    assert settings.refine.particles == base.refine.particles  # the rest untouched
+    with pytest.raises(ConfigError, match=r"refine\.articulation_sd.*did you mean"):
+        _settings(RegisterSyntheticConfig(registration={"refine.articulation_sd": 0.1}))
+    with pytest.raises(ConfigError, match=r"refine\.particles must be an integer"):
+        _settings(RegisterSyntheticConfig(registration={"refine.particles": 0.5}))
