@@ -5,7 +5,9 @@ Particle BP scores each part against the other parts' estimates (the occlusion-a
 it and compare. :func:`render_residual` does that -- pixels where the rendered silhouette and
 the observed one disagree, plus (optionally) the colour difference of the part-coloured
 rendering against the observed image -- and :func:`best_per_frame` keeps, frame by frame,
-the posture of the search with the smallest residual. Several searches from the same start
+the posture of the search with the smallest residual (:func:`best_overall`: the one search
+with the smallest residual over all frames, where frames are coupled and a posture mixed
+from several searches would break what couples them). Several searches from the same start
 with different random draws (a batch of particle BP runs) fall into different local optima
 (a leg crossed over, an arm flipped); the joint residual tells them apart without the truth.
 
@@ -23,7 +25,7 @@ from motion.body.observation import Observation, PartShapes, body_layers
 from motion.cameras import CameraRig
 from motion.render import project_parts, render_intensity
 
-__all__ = ["best_per_frame", "render_residual"]
+__all__ = ["best_overall", "best_per_frame", "render_residual"]
 
 
 def render_residual(
@@ -72,11 +74,26 @@ def best_per_frame(poses: Tensor, residual: Tensor) -> tuple[Tensor, Tensor]:
     Shapes: poses ``(S, T, P, 7)``, residual ``(S, T)`` -> ``(T, P, 7)`` and the chosen
     search per frame ``(T,)`` long.
     """
+    _check_residual(poses, residual)
+    choice = residual.argmin(0)
+    frames = torch.arange(poses.shape[1], device=poses.device)
+    return poses[choice, frames], choice
+
+
+def best_overall(poses: Tensor, residual: Tensor) -> tuple[Tensor, Tensor]:
+    """The postures of the one search with the smallest residual summed over the frames.
+
+    Shapes: poses ``(S, T, P, 7)``, residual ``(S, T)`` -> ``(T, P, 7)`` and the chosen
+    search for every frame ``(T,)`` long (one value repeated).
+    """
+    _check_residual(poses, residual)
+    best = residual.sum(1).argmin()
+    return poses[best], best.expand(poses.shape[1]).clone()
+
+
+def _check_residual(poses: Tensor, residual: Tensor) -> None:
     if residual.shape != poses.shape[:2]:
         raise ValueError(
             f"residual must have shape {tuple(poses.shape[:2])} (searches, frames); "
             f"got {tuple(residual.shape)}"
         )
-    choice = residual.argmin(0)
-    frames = torch.arange(poses.shape[1], device=poses.device)
-    return poses[choice, frames], choice

@@ -10,7 +10,8 @@ posture the same way once their graph is built; :func:`solve_posture` is that se
 2. **Search**: :func:`pgm.particle_bp` under max-product (a posture is a maximum, not a
    marginal) with annealed proposal kernels.
 3. **Choice** (``searches > 1``): per frame the search whose rendering explains the images
-   best (:mod:`motion.body.select`).
+   best, or (``choose="all"``) the one search that explains all frames best
+   (:mod:`motion.body.select`).
 4. **Polish** (optional): gradient polish on the soft renderer (:mod:`motion.body.polish`).
 
 Building the graph stays with the caller (registration couples C to the parts, the
@@ -34,7 +35,7 @@ from torch import Tensor
 
 from motion.body.observation import Observation, PartShapes
 from motion.body.polish import polish
-from motion.body.select import best_per_frame, render_residual
+from motion.body.select import best_overall, best_per_frame, render_residual
 from motion.body.spec import BodySpec
 from motion.cameras import CameraRig
 from motion.settings import Settings, setting
@@ -61,6 +62,14 @@ class PostureSettings(Settings):
         "independent searches (a batch of particle BP runs with different draws); with more "
         "than one, each frame keeps the one whose rendering explains the images best",
         ge=1,
+    )
+    choose: str = setting(
+        "frame",
+        "with several searches: frame (each frame keeps its best search) or all (every frame "
+        "keeps the one search whose rendering explains the frames best in sum: where temporal "
+        "edges or a chain couple the frames, a posture mixed from several searches would "
+        "break them)",
+        choices=("frame", "all"),
     )
     # K copies of the start would be one hypothesis (the first pass weights the initial
     # particles as they are); a small spread gives it K near the start to choose from, the
@@ -177,7 +186,7 @@ def solve_posture(
     result = _search(graph, initial, settings, generator)
     t, p = start.shape[:2]
     searches = result.best[:, : t * p].reshape(settings.searches, t, p, 7)
-    poses, choice, residual = _choose(searches, images)
+    poses, choice, residual = _choose(searches, images, settings.choose)
     if settings.polish:
         poses = polish(images.spec, images.rig, images.observation, poses, images.colours)
     return PostureSolution(poses, choice, searches, residual, result)
@@ -254,10 +263,12 @@ def _kernel_scales(graph: ParticleGraph, settings: PostureSettings) -> list:
     return [None if space.discrete else settings.kernel_scale for space, _ in graph.spaces]
 
 
-def _choose(searches: Tensor, images: Images | None) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Per frame the search with the smallest render residual: ``(S, T, P, 7)`` ->
-    poses ``(T, P, 7)``, choice ``(T,)`` long, residual ``(S, T)``. One search is its own
-    choice, rendered nothing."""
+def _choose(
+    searches: Tensor, images: Images | None, choose: str
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Per frame (``choose="frame"``) or for all frames (``"all"``) the search with the
+    smallest render residual: ``(S, T, P, 7)`` -> poses ``(T, P, 7)``, choice ``(T,)``
+    long, residual ``(S, T)``. One search is its own choice, rendered nothing."""
     if searches.shape[0] == 1:
         choice = torch.zeros(searches.shape[1], dtype=torch.long, device=searches.device)
         return searches[0], choice, None
@@ -269,5 +280,6 @@ def _choose(searches: Tensor, images: Images | None) -> tuple[Tensor, Tensor, Te
         images.colours,
         images.colour_weight,
     )
-    poses, choice = best_per_frame(searches, residual)
+    pick = best_per_frame if choose == "frame" else best_overall
+    poses, choice = pick(searches, residual)
     return poses, choice, residual

@@ -51,7 +51,8 @@ from motion.body.observation import (
     Silhouette,
     body_layers,
 )
-from motion.body.solve import PostureSettings, solve_posture
+from motion.body.solve import Images, PostureSettings, solve_posture
+from motion.body.spec import BodySpec
 from motion.registration.types import (
     FRAME_CHUNK,
     Reference,
@@ -124,6 +125,14 @@ class RefineSettings(Settings):
     particles: int = setting(100, "K, particles per part", ge=2)
     iterations: int = setting(5, "particle BP passes (the proposal runs 6 iterations twice)", ge=1)
     restarts: int = setting(2, "particle BP restarts (with iterations: its passes)", ge=1)
+    searches: int = setting(
+        1,
+        "independent particle BP searches per window (a batch of runs with different draws); "
+        "with more than one the window keeps the search whose rendering explains its frames "
+        "best in sum (motion.body.solve, choose=all: one search for the whole window, so the "
+        "temporal edges and C's chain stay whole), at about searches times the cost",
+        ge=1,
+    )
     window: int = setting(24, "video frames per window", ge=1)
     overlap: int = setting(4, "video frames shared between neighbouring windows", ge=0)
     prior_pos_std: float = setting(
@@ -414,8 +423,10 @@ class _Problem:
     video: VideoFeatures
     scale: float
     settings: RefineSettings
+    spec: BodySpec  # the reference's body at the video's scale G
     shapes: PartShapes
     cues: list
+    colours: Tensor | None  # (P, 3) the intensity cue's part colours (None: no colour)
     body: Tensor  # (T, P, 7) reference part poses in the root frame (float32, scaled)
     max_step: int
     step_log_potential: Tensor  # (max_step + 1,) C's slope prior
@@ -490,24 +501,33 @@ def _run_window(
         start = place_poses(rotation, translation, problem.body[c])  # (n, P, 7)
         unaries.append((body_nodes, PosturePrior(start, s.prior_pos_std, s.prior_rot_std)))
     graph = ParticleGraph(v_body + (n if couple else 0), spaces, pairwise, unaries)
-    solution = solve_posture(graph, start, _posture_settings(s), generator)
+    images = None
+    if s.searches > 1:
+        images = Images(problem.spec, problem.video.cameras, obs, problem.colours, s.intensity)
+    solution = solve_posture(graph, start, _posture_settings(s), generator, images)
     result, poses = solution.result, solution.poses
+    kept = int(solution.choice[0])  # one search for the whole window (choose="all")
     spread = rotation_spread_deg(
-        result.particles[0, :v_body], result.log_weights[0, :v_body], result.best[0, :v_body]
+        result.particles[kept, :v_body],
+        result.log_weights[kept, :v_body],
+        result.best[kept, :v_body],
     ).reshape(n, p)
     if not couple:
         return poses, c, spread
-    chosen = result.best[0, v_body:, 0].round().long()
+    chosen = result.best[kept, v_body:, 0].round().long()
     return poses, states.gather(1, chosen[:, None]).squeeze(1), spread
 
 
 def _posture_settings(settings: RefineSettings) -> PostureSettings:
-    """The posture solver's settings of one window: one search, no polish (registration
-    fits and polishes the skeleton itself), the rest :class:`PostureSettings`' defaults."""
+    """The posture solver's settings of one window: its searches chosen among for the whole
+    window, no polish (registration fits and polishes the skeleton itself), the rest
+    :class:`PostureSettings`' defaults."""
     return PostureSettings(
         particles=settings.particles,
         iterations=settings.iterations,
         restarts=settings.restarts,
+        searches=settings.searches,
+        choose="all",
         kernel_scale=settings.kernel_scale,
         kernel_end=settings.kernel_end,
     )
@@ -670,8 +690,10 @@ def _problem(
         video,
         float(scale),
         settings,
+        spec,
         PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float()),
         [],
+        None,
         reference.body_poses(torch.arange(reference.num_frames), scale).float(),
         max_step,
         -slope_step_cost(max_step, ratio, settings.slope_weight).float(),
@@ -715,6 +737,7 @@ def refine(
         start = place_poses(rotation, translation, problem.body[c])
         colours = estimate_part_colours(problem.shapes, video, start)
     problem.cues = _cues(reference, video, s, colours)
+    problem.colours = colours if s.intensity > 0 else None
     starts = _window_starts(t, s.window, s.overlap)
     owner = _owner(t, starts, s.window)
     wrap = progress or (lambda items, desc, total: items)

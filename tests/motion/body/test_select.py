@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from motion.body.observation import Observation
-from motion.body.select import best_per_frame, render_residual
+from motion.body.select import best_overall, best_per_frame, render_residual
 from motion.render import label_map, project_parts, render_intensity, silhouette
 from pgm import SE3
 from tests.motion.body.conftest import F64
@@ -63,6 +63,17 @@ def test_best_per_frame_takes_each_frames_smallest_residual(searches):
     assert choice.tolist() == [1, 0, 2]
     for t, s in enumerate(choice.tolist()):
         assert torch.equal(best[t], poses[s, t])
+
+
+def test_best_overall_keeps_one_search_for_every_frame_the_smallest_in_sum(searches):
+    poses = searches[0]
+    # per frame searches 1, 0, 2 are best; in sum search 3 (6.5 against 9, 8.5 and 13)
+    residual = torch.tensor([[3.0, 1.0, 5.0], [1.0, 5.0, 2.5], [9.0, 3.5, 0.5], [2.5, 2.0, 2.0]])
+    best, choice = best_overall(poses, residual)
+    assert choice.tolist() == [3, 3, 3]
+    assert torch.equal(best, poses[3])
+    with pytest.raises(ValueError, match=r"residual must have shape \(4, 3\)"):
+        best_overall(poses, torch.zeros(3, 4))
 
 
 def test_bad_shapes_state_expected_and_actual(searches):

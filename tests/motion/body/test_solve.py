@@ -6,6 +6,8 @@ settings and inputs are refused naming expected and actual."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -112,6 +114,24 @@ def test_several_searches_keep_per_frame_the_smallest_render_residual(problem):
     assert (residual[got.choice, frames] <= residual.amin(0)).all()
 
 
+def test_choosing_for_all_frames_keeps_one_search_the_smallest_residual_in_sum(problem):
+    _, _, start, images, graph = problem
+    settings = PostureSettings(
+        particles=K, iterations=3, restarts=1, kernel_end=0.1, searches=3, choose="all"
+    )
+    got = solve_posture(graph, start, settings, torch.Generator().manual_seed(4), images)
+    per_frame = solve_posture(
+        graph, start, replace(settings, choose="frame"), torch.Generator().manual_seed(4), images
+    )
+    assert torch.equal(got.searches, per_frame.searches)  # the same draws
+    best = int(got.residual.sum(1).argmin())
+    assert got.choice.tolist() == [best] * len(FRAMES)
+    assert torch.equal(got.poses, got.searches[best])
+    # the frames' own best searches differ (seed 4: [2, 0]), so one frame keeps a worse one
+    assert len(set(per_frame.choice.tolist())) > 1
+    assert not torch.equal(got.poses, per_frame.poses)
+
+
 def test_polish_is_motion_body_polish_of_the_chosen_poses(problem):
     spec, _, start, images, graph = problem
     plain = solve_posture(graph, start, SETTINGS, torch.Generator().manual_seed(5))
@@ -162,6 +182,7 @@ def test_anneal_schedule_shrinks_geometrically_or_holds_the_geometric_mean():
         ({"proposal": "best"}, "proposal must be one of 'mixture', 'own'; got 'best'"),
         ({"proposal_centres": 0}, "proposal_centres must be >= 1; got 0"),
         ({"particles": 1}, "particles must be >= 2; got 1"),
+        ({"choose": "window"}, "choose must be one of 'frame', 'all'; got 'window'"),
     ],
 )
 def test_bad_settings_state_expected_and_actual(fields, message):

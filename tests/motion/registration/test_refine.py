@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from motion.body.select import render_residual
 from motion.draw import PART_COLOURS
 from motion.registration.inputs import features_from_sequence
 from motion.registration.refine import (
@@ -379,3 +380,59 @@ def test_rotation_spread_is_the_weighted_rms_angle_about_the_chosen_pose():
     assert math.isnan(float(none))
     padded = torch.log(torch.tensor([[1.0, 0.0, 0.0]]))  # -inf padding: only the first
     assert float(rotation_spread_deg(particles, padded, best[None])) == pytest.approx(0, abs=1e-3)
+
+
+def test_several_searches_keep_per_window_the_search_that_renders_its_frames_best(
+    student, monkeypatch
+):
+    """With ``searches=3`` each window keeps one search for all its frames, the one whose
+    rendering (select.render_residual, recomputed here) explains the window best in sum:
+    its part poses, its orientation spreads and its C chain's states, not search 0's."""
+    import motion.registration.refine as refine_module
+
+    _, ref, video, c, rot, pos = student
+    n = 6
+    video, c, rot, pos = video.cut(slice(0, n)), c[:n], rot[:n], pos[:n]
+    solve, run_window = refine_module.solve_posture, refine_module._run_window
+    solutions, windows = [], []
+
+    def spy_solve(graph, start, settings, generator, images=None):
+        solutions.append((solve(graph, start, settings, generator, images), images))
+        return solutions[-1][0]
+
+    def spy_window(problem, frames, c_win, *args):
+        windows.append((c_win, run_window(problem, frames, c_win, *args)))
+        return windows[-1][1]
+
+    monkeypatch.setattr(refine_module, "solve_posture", spy_solve)
+    monkeypatch.setattr(refine_module, "_run_window", spy_window)
+    s = RefineSettings(
+        particles=30, iterations=2, restarts=1, searches=3, band=6, rounds=1, tempo_std=0.0
+    )
+    refine(ref, video, c, rot, pos, 1.0, s, torch.Generator().manual_seed(1))
+    assert len(solutions) == 2  # stage 2 and one stage-3 round, one window each
+    kept_any = []
+    for (solution, images), (c_in, (poses, c_out, spread)) in zip(solutions, windows, strict=True):
+        residual = render_residual(
+            images.shapes,
+            images.rig,
+            images.observation,
+            solution.searches,
+            images.colours,
+            s.intensity,
+        )
+        kept = int(residual.sum(1).argmin())
+        kept_any.append(kept)
+        assert solution.choice.tolist() == [kept] * n
+        assert torch.equal(poses, solution.searches[kept])
+        result = solution.result
+        v = n * ref.spec.num_parts
+        want = rotation_spread_deg(
+            result.particles[kept, :v], result.log_weights[kept, :v], result.best[kept, :v]
+        )
+        torch.testing.assert_close(spread, want.reshape(n, -1), atol=0, rtol=0)
+        if result.best.shape[1] > v:  # stage 3: C is the kept search's chain
+            offsets = (c_in - s.band).clamp(0, ref.num_frames - (2 * s.band + 1))
+            states = result.best[kept, v:, 0].round().long()
+            assert torch.equal(c_out, offsets + states)
+    assert any(kept_any), "every window kept search 0: the test would not see a wrong index"
