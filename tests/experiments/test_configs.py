@@ -56,7 +56,9 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "pose2sim_silhouette_iou_mean",
         "pose2sim_e3d_mean",
         "pose2sim_rmse_deg_leg_flexion_mean",
+        "pose2sim_rmse_deg_centred_leg_flexion_mean",
         "pose2sim_reference_rmse_deg_leg_flexion_mean",
+        "pose2sim_own_rmse_deg_leg_flexion_mean",
     ],
 }
 TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
