@@ -62,6 +62,7 @@ from experiments.progress import note, progress
 from experiments.stick_time import BUNDLED
 from motion.alignment import chain_align
 from motion.angles import COORDINATES, ClinicalAngles, SegmentMap, clinical_angles
+from motion.body.observation import PartShapes
 from motion.geometry import euler_to_matrix, rotation_about_y
 from motion.kinematics import forward_kinematics
 from motion.metrics import rotation_angle_error_deg
@@ -71,9 +72,10 @@ from motion.registration.config import override
 from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import check_movement
+from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
-from motion.registration.refine import RefineSettings
-from motion.registration.types import paired_part
+from motion.registration.refine import RefineSettings, place_poses
+from motion.registration.types import paired_part, scaled_spec
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
 
@@ -472,6 +474,7 @@ def run(cfg: RegisterSyntheticConfig):
         "sec_polish": result.timings.get("polish", 0.0),
         "e3d_mean": float(e3d.mean()),
         "silhouette_iou_mean": float(result.fit.mean()),
+        **_iou_of_alternatives(reference, video, result, truth),
         "G": float(result.G),
         "motions_match": float(movement.motions_match),
         "travel_ratio": movement.student_travel_m / max(movement.reference_travel_m, 1e-9),
@@ -506,6 +509,40 @@ def run(cfg: RegisterSyntheticConfig):
         )
     data = {"columns": columns, "joints": joint_names, "joint_err": a_err.mean(0).numpy()}
     return metrics, columns, data
+
+
+def _iou_of_alternatives(reference: Reference, video, result, truth: Truth) -> dict[str, float]:
+    """How well two other postures on the registration's own body (its G and proportions)
+    cover the silhouettes, scored as its fit is (mean IoU over frames and cameras):
+
+    * ``silhouette_iou_truth_mean``: the student's true posture (local rotations, root
+      rotation and position). Where it scores no better than the registration's, the
+      silhouettes on this body cannot tell the student's articulation from the estimate's:
+      a floor of the observation, not of the inference.
+    * ``silhouette_iou_no_change_mean``: the reference's posture at the registration's C,
+      placed by its T (A = identity): what the articulation adds to the fit.
+    """
+    scales = result.joint_scales()
+    spec = scaled_spec(
+        reference.spec,
+        result.G,
+        None if result.proportions is None else result.proportions.part_scales,
+    )
+    shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
+    unchanged = reference.rotations[result.C].clone()
+    unchanged[:, 0] = result.T_rotation
+    out = {}
+    for name, rotations, root in (
+        ("truth", truth.local.clone(), truth.position),
+        ("no_change", unchanged, result.T_translation),
+    ):
+        if name == "truth":
+            rotations[:, 0] = truth.rotation
+        posture = reference.posture_poses(rotations, result.G, scales)
+        poses = place_poses(rotations[:, 0], root, posture).float()
+        iou = silhouette_iou(shapes, video.cameras, video.observation.silhouette[0], poses)
+        out[f"silhouette_iou_{name}_mean"] = float(iou.mean())
+    return out
 
 
 def true_part_scales(reference: Reference, student: Reference | None) -> Tensor:

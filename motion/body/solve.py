@@ -60,7 +60,7 @@ class PostureSettings(Settings):
     searches: int = setting(
         1,
         "independent searches (a batch of particle BP runs with different draws); with more "
-        "than one, each frame keeps the one whose rendering explains the images best",
+        "than one, the one whose rendering explains the images best is kept (see choose)",
         ge=1,
     )
     choose: str = setting(

@@ -49,6 +49,8 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "a_err_deg_mean",
         "a_err_deg_mean_no_change",
         "e3d_mean",
+        "silhouette_iou_truth_mean",
+        "silhouette_iou_no_change_mean",
     ],
     "register_long": ["c_err_mean", "c_err_mean_stage1", "a_err_deg_mean"],
     "register_real": [

@@ -17,6 +17,7 @@ from experiments.register_synthetic import (
     Truth,
     _bone_direction_error_deg,
     _bone_directions,
+    _iou_of_alternatives,
     _long_bones,
     _posture_cost,
     _settings,
@@ -25,6 +26,7 @@ from experiments.register_synthetic import (
     finding_agreement,
     nearest_truth,
     posture_excess,
+    synthetic_truth,
     true_correspondence,
     true_correspondences,
     true_differences,
@@ -224,3 +226,40 @@ def test_any_registration_setting_is_set_by_its_dotted_key_and_a_wrong_one_is_re
         _settings(RegisterSyntheticConfig(registration={"refine.articulation_sd": 0.1}))
     with pytest.raises(ConfigError, match=r"refine\.particles must be an integer"):
         _settings(RegisterSyntheticConfig(registration={"refine.particles": 0.5}))
+
+
+def test_the_true_posture_covers_the_rendered_silhouettes_and_a_wrong_one_less():
+    """The student is the walk itself, turned and re-articulated by motion synth: its true
+    posture on its own body (G 1) renders the silhouettes the synthesiser drew (IoU ~1);
+    the reference's posture at the true C and T (A = identity) misses the bent joints."""
+    from motion.registration.inputs import features_from_sequence
+    from motion.registration.types import Registration
+    from motion.synth import SynthConfig, synthesize
+
+    cfg = SynthConfig(fps=25, size=[160, 120], focal_px=220, seed=0, articulation={"LeftLeg": 40.0})
+    seq = synthesize(WALK, cfg)
+    reference = Reference.from_bvh(WALK)
+    truth = synthetic_truth(seq, reference, None)
+    frames = slice(0, 6)
+    video = features_from_sequence(seq).cut(frames)
+    truth = dataclasses.replace(
+        truth,
+        C=truth.C[frames],
+        rotation=truth.rotation[frames],
+        position=truth.position[frames],
+        local=truth.local[frames],
+    )
+    n = video.num_frames
+    result = Registration(  # the registration found C and T exactly, and no articulation
+        C=truth.C,
+        T_rotation=truth.rotation,
+        T_translation=truth.position,
+        A=torch.eye(3, dtype=torch.float64).expand(n, reference.skeleton.num_joints, 3, 3),
+        G=1.0,
+        rotations=truth.local,
+        fit=torch.ones(n),
+        C_stage1=truth.C,
+    )
+    out = _iou_of_alternatives(reference, video, result, truth)
+    assert out["silhouette_iou_truth_mean"] > 0.97  # rasterisation at the rim
+    assert out["silhouette_iou_no_change_mean"] < out["silhouette_iou_truth_mean"] - 0.02
