@@ -17,6 +17,7 @@ from experiments.register_synthetic import (
     Truth,
     _bone_direction_error_deg,
     _bone_directions,
+    _first,
     _iou_of_alternatives,
     _long_bones,
     _posture_cost,
@@ -240,15 +241,7 @@ def test_the_true_posture_covers_the_rendered_silhouettes_and_a_wrong_one_less()
     seq = synthesize(WALK, cfg)
     reference = Reference.from_bvh(WALK)
     truth = synthetic_truth(seq, reference, None)
-    frames = slice(0, 6)
-    video = features_from_sequence(seq).cut(frames)
-    truth = dataclasses.replace(
-        truth,
-        C=truth.C[frames],
-        rotation=truth.rotation[frames],
-        position=truth.position[frames],
-        local=truth.local[frames],
-    )
+    video, truth = _first(features_from_sequence(seq), truth, 6)
     n = video.num_frames
     result = Registration(  # the registration found C and T exactly, and no articulation
         C=truth.C,
