@@ -9,10 +9,14 @@ gradient descent (Adam) on
 
 * **the silhouettes, both ways, at sampled points** (O(points), not O(pixels): DESIGN.md
   section 7): points on every capsule's projected outline pay their squared distance
-  (pixels) outside the observed silhouette (read by bilinear interpolation from its distance
-  map), and sampled pixels of the observed silhouette pay their squared distance outside the
-  body (the nearest capsule's signed distance, :func:`motion.render.capsule_sdf`); each
-  camera's term is the mean over its points, in nats per squared ``silhouette_px``;
+  (pixels) beyond a pixel outside the observed silhouette (read by bilinear interpolation
+  from its distance map: a pixel is in the silhouette when its centre is inside the body,
+  so the outline may lie up to a pixel beyond its outer pixels' centres), sampled pixels of
+  the observed silhouette pay their squared distance outside the body (the nearest
+  capsule's signed distance, :func:`motion.render.capsule_sdf`), and sampled pixels of the
+  ring just outside it their squared distance inside the body; the true posture costs
+  nothing. Each camera's term is the sum of the three means over their points, in nats
+  per squared ``silhouette_px``;
 * **the 2-D joints**, where given: a Cauchy term ``log(1 + r^2 / s^2)`` of each joint's
   reprojection error ``r`` in each camera, weighted by the detector's confidence;
 * **the articulation prior** ``E_A``: each driven joint's rotation angle away from the
@@ -160,22 +164,27 @@ class PolishResult:
 class _Targets:
     """What the images say, for one chunk: the silhouette's distance map ``(n, C, H, W)``
     (pixels beyond the band where the silhouette's outline may lie: the distance to the
-    nearest silhouette pixel's centre less one pixel, 0 inside and within it), sampled silhouette pixels ``(n, C,
-    N, 2)`` (u, v) with a mask ``(n, C, N)`` of the real ones, each view's weight ``(n,
-    C)`` (0: an empty silhouette), and the 2-D joints ``(n, C, K, 3)`` or ``None``."""
+    nearest silhouette pixel's centre less one pixel, 0 inside and within it), sampled
+    silhouette pixels ``(n, C, N, 2)`` (u, v) with a mask ``(n, C, N)`` of the real ones,
+    sampled pixels of the ring just outside it (``ring``, ``ring_mask``: the pixels next to
+    a silhouette pixel, 8-connected), each view's weight ``(n, C)`` (0: an empty
+    silhouette), and the 2-D joints ``(n, C, K, 3)`` or ``None``."""
 
     outside: Tensor
     samples: Tensor
     sample_mask: Tensor
+    ring: Tensor
+    ring_mask: Tensor
     view: Tensor
     keypoints: Tensor | None
 
 
 def _silhouette_targets(
     silhouette: Tensor, samples: int, generator: torch.Generator
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Distance maps, sampled pixels, their mask and each view's weight of silhouettes
-    ``(n, C, H, W)`` in [0, 1] (see :class:`_Targets`)."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Distance maps, sampled silhouette pixels and their mask, sampled ring pixels and
+    their mask, and each view's weight of silhouettes ``(n, C, H, W)`` in [0, 1] (see
+    :class:`_Targets`)."""
     n, c, h, w = silhouette.shape
     inside = silhouette > 0.5
     view = inside.flatten(2).any(-1)  # (n, C)
@@ -184,16 +193,30 @@ def _silhouette_targets(
     # lies anywhere between the outer pixels' centres and the next pixels' (up to a pixel
     # beyond the former): it pays from there on. Read to the centres themselves, the true
     # outline would pay ~0.5 px everywhere and the body would shrink into them (started at
-    # the truth, the silhouettes alone moved it to IoU 0.96)
+    # the truth, the silhouettes alone moved it to IoU 0.96). Within that band the ring's
+    # pixels say where it ends: their centres must lie outside the body
     outside = (centres - 1.0).clamp_min(0)
     outside = torch.where(view[..., None, None], outside, torch.zeros_like(outside))
-    # sampled pixels: a uniform draw (with replacement) from each view's silhouette
-    flat = inside.reshape(n * c, h * w).float()
+    near = F.max_pool2d(inside.reshape(n * c, 1, h, w).float(), 3, 1, 1).reshape(n, c, h, w)
+    ring = (near > 0) & ~inside
+    uv, mask = _sample_pixels(inside, samples, generator)
+    ring_uv, ring_mask = _sample_pixels(ring, samples, generator)
+    return outside, uv, mask, ring_uv, ring_mask, view.float()
+
+
+def _sample_pixels(
+    pixels: Tensor, samples: int, generator: torch.Generator
+) -> tuple[Tensor, Tensor]:
+    """``samples`` pixels ``(n, C, N, 2)`` (u, v) drawn uniformly (with replacement) from each
+    view's ``pixels`` ``(n, C, H, W)`` bool, and a mask ``(n, C, N)`` of the views that have
+    any (the others' draws are anywhere and masked out)."""
+    n, c, h, w = pixels.shape
+    flat = pixels.reshape(n * c, h * w).float()
     weights = torch.where(flat.sum(-1, keepdim=True) > 0, flat, torch.ones_like(flat))
     index = torch.multinomial(weights, samples, replacement=True, generator=generator)
     uv = torch.stack([index % w, index // w], -1).float().reshape(n, c, samples, 2)
-    mask = view[..., None].expand(n, c, samples)
-    return outside, uv, mask, view.float()
+    mask = pixels.flatten(2).any(-1)[..., None].expand(n, c, samples)
+    return uv, mask
 
 
 def _sample_map(maps: Tensor, uv: Tensor) -> Tensor:
@@ -342,11 +365,14 @@ def _losses(
         outline = capsule_outline(parts.ends, parts.radii, s.outline_points)  # (n,C,P,S,2)
         n, c = outline.shape[:2]
         out = _sample_map(targets.outside, outline.reshape(n, c, -1, 2)).square().mean(-1)
-        # the silhouette's pixels, outside the body
+        # the silhouette's pixels outside the body, and the ring's pixels inside it
         sdf, _ = capsule_sdf(targets.samples[:, :, None], parts.ends, parts.radii)
         uncovered = sdf.amin(-2).clamp_min(0).square()  # (n, C, N)
         cover = (uncovered * targets.sample_mask).sum(-1) / targets.sample_mask.sum(-1).clamp_min(1)
-        per_view = (out + cover) / (2 * s.silhouette_px**2)
+        sdf, _ = capsule_sdf(targets.ring[:, :, None], parts.ends, parts.radii)
+        spilt = (-sdf.amin(-2)).clamp_min(0).square()  # (n, C, N)
+        spill = (spilt * targets.ring_mask).sum(-1) / targets.ring_mask.sum(-1).clamp_min(1)
+        per_view = (out + cover + spill) / (2 * s.silhouette_px**2)
         terms["silhouette"] = s.silhouette * (per_view * targets.view).sum().double()
     kp_joints = problem.keypoint_joints
     if s.keypoints > 0 and targets.keypoints is not None and kp_joints is not None:
@@ -466,7 +492,7 @@ def polish_posture(
 
     def problem(frames: Tensor | slice, rot: Tensor, trans: Tensor, body: Proportions):
         obs = video.observation
-        outside, samples, sample_mask, view = _silhouette_targets(
+        targets = _silhouette_targets(
             obs.silhouette[0, frames].float(), s.silhouette_samples, generator
         )
         keypoints = None
@@ -477,7 +503,7 @@ def polish_posture(
             scaled_spec(reference.spec, scale),
             body,
             video.cameras,
-            _Targets(outside, samples, sample_mask, view, keypoints),
+            _Targets(*targets, keypoints),
             keypoint_joints,
             reference.rotations[c[frames]][:, driven].double(),
             driven,
