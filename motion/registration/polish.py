@@ -106,9 +106,12 @@ class PosturePolishSettings(Settings):
     )
     keypoint_px: float = setting(4.0, "pixels, the 2-D joints' Cauchy scale", gt=0)
     articulation_deg: float = setting(
-        20.0,
+        40.0,
         "degrees, s of the articulation prior 2 (1 - cos a) / s^2 on each joint's rotation a "
-        "about the reference's at C (near 0 a Gaussian of spread s / sqrt(2))",
+        "about the reference's at C (near 0 a Gaussian of spread s / sqrt(2), 28 degrees: a "
+        "student's joints differ from the reference's by ten or twenty degrees, and the "
+        "silhouettes' terms hold the true posture, so the prior need only keep what they "
+        "cannot see; docs/decisions/002-posture-polish.md)",
         gt=0,
         le=180,
     )
