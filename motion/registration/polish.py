@@ -9,14 +9,15 @@ gradient descent (Adam) on
 
 * **the silhouettes, both ways, at sampled points** (O(points), not O(pixels): DESIGN.md
   section 7): points on every capsule's projected outline pay their squared distance
-  (pixels) beyond a pixel outside the observed silhouette (read by bilinear interpolation
-  from its distance map: a pixel is in the silhouette when its centre is inside the body,
-  so the outline may lie up to a pixel beyond its outer pixels' centres), sampled pixels of
-  the observed silhouette pay their squared distance outside the body (the nearest
-  capsule's signed distance, :func:`motion.render.capsule_sdf`), and sampled pixels of the
-  ring just outside it their squared distance inside the body; the true posture costs
-  nothing. Each camera's term is the sum of the three means over their points, in nats
-  per squared ``silhouette_px``;
+  (pixels) outside the observed silhouette (read by bilinear interpolation from its distance
+  map to its pixels' centres), and sampled pixels of the observed silhouette pay their
+  squared distance outside the body (the nearest capsule's signed distance,
+  :func:`motion.render.capsule_sdf`); each camera's term is the mean over its points, in
+  nats per squared ``silhouette_px``. With ``rasterised`` the outline pays only beyond a
+  pixel from the outer pixels' centres (a pixel is drawn when its centre is inside the
+  body, so the true outline may lie up to there) and sampled pixels of the ring just
+  outside the silhouette pay their squared distance inside the body: the true posture of
+  a rendered student then costs nothing;
 * **the 2-D joints**, where given: a Cauchy term ``log(1 + r^2 / s^2)`` of each joint's
   reprojection error ``r`` in each camera, weighted by the detector's confidence;
 * **the articulation prior** ``E_A``: each driven joint's rotation angle away from the
@@ -106,12 +107,11 @@ class PosturePolishSettings(Settings):
     )
     keypoint_px: float = setting(4.0, "pixels, the 2-D joints' Cauchy scale", gt=0)
     articulation_deg: float = setting(
-        40.0,
+        20.0,
         "degrees, s of the articulation prior 2 (1 - cos a) / s^2 on each joint's rotation a "
-        "about the reference's at C (near 0 a Gaussian of spread s / sqrt(2), 28 degrees: a "
-        "student's joints differ from the reference's by ten or twenty degrees, and the "
-        "silhouettes' terms hold the true posture, so the prior need only keep what they "
-        "cannot see; docs/decisions/002-posture-polish.md)",
+        "about the reference's at C (near 0 a Gaussian of spread s / sqrt(2)); 40 measured "
+        "better on rendered students and worse on the real Pose2Sim trial "
+        "(docs/decisions/002-posture-polish.md)",
         gt=0,
         le=180,
     )
@@ -146,6 +146,15 @@ class PosturePolishSettings(Settings):
     symmetric: bool = setting(
         True, "left and right parts (names ending _l and _r) share one length factor"
     )
+    rasterised: bool = setting(
+        False,
+        "read the silhouettes as a rasteriser draws them: the body's outline free within a "
+        "pixel of the silhouette's outer pixel centres, and the ring of pixels just outside "
+        "it paying where the body covers them, so the true posture of a rendered student "
+        "costs nothing; off: the outline read to the pixel centres, which shrinks the body "
+        "about half a pixel but measured better on the real Pose2Sim trial, whose masks are "
+        "no rasteriser's (docs/decisions/002-posture-polish.md)",
+    )
     seed: int = setting(0, "seed of the silhouette pixels' sampling", ge=0)
 
 
@@ -166,44 +175,48 @@ class PolishResult:
 @dataclass
 class _Targets:
     """What the images say, for one chunk: the silhouette's distance map ``(n, C, H, W)``
-    (pixels beyond the band where the silhouette's outline may lie: the distance to the
-    nearest silhouette pixel's centre less one pixel, 0 inside and within it), sampled
-    silhouette pixels ``(n, C, N, 2)`` (u, v) with a mask ``(n, C, N)`` of the real ones,
-    sampled pixels of the ring just outside it (``ring``, ``ring_mask``: the pixels next to
-    a silhouette pixel, 8-connected), each view's weight ``(n, C)`` (0: an empty
+    (pixels to the nearest silhouette pixel's centre, 0 inside; ``rasterised``: less one
+    pixel, 0 within it), sampled silhouette pixels ``(n, C, N, 2)`` (u, v) with a mask
+    ``(n, C, N)`` of the real ones, sampled pixels of the ring just outside it (``ring``,
+    ``ring_mask``: the pixels next to a silhouette pixel, 8-connected; ``None`` unless
+    ``rasterised``), each view's weight ``(n, C)`` (0: an empty
     silhouette), and the 2-D joints ``(n, C, K, 3)`` or ``None``."""
 
     outside: Tensor
     samples: Tensor
     sample_mask: Tensor
-    ring: Tensor
-    ring_mask: Tensor
+    ring: Tensor | None
+    ring_mask: Tensor | None
     view: Tensor
     keypoints: Tensor | None
 
 
 def _silhouette_targets(
-    silhouette: Tensor, samples: int, generator: torch.Generator
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    silhouette: Tensor, samples: int, generator: torch.Generator, rasterised: bool
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
     """Distance maps, sampled silhouette pixels and their mask, sampled ring pixels and
-    their mask, and each view's weight of silhouettes ``(n, C, H, W)`` in [0, 1] (see
-    :class:`_Targets`)."""
+    their mask (``None`` unless ``rasterised``), and each view's weight of silhouettes
+    ``(n, C, H, W)`` in [0, 1] (see :class:`_Targets` and
+    :attr:`PosturePolishSettings.rasterised`)."""
     n, c, h, w = silhouette.shape
     inside = silhouette > 0.5
     view = inside.flatten(2).any(-1)  # (n, C)
-    centres = distance_to_edges(inside.reshape(n * c, 1, h, w)).reshape(n, c, h, w)
-    # a pixel is in the silhouette when its centre is inside the body, so the true outline
-    # lies anywhere between the outer pixels' centres and the next pixels' (up to a pixel
-    # beyond the former): it pays from there on. Read to the centres themselves, the true
-    # outline would pay ~0.5 px everywhere and the body would shrink into them (started at
-    # the truth, the silhouettes alone moved it to IoU 0.96). Within that band the ring's
-    # pixels say where it ends: their centres must lie outside the body
-    outside = (centres - 1.0).clamp_min(0)
+    outside = distance_to_edges(inside.reshape(n * c, 1, h, w)).reshape(n, c, h, w)
+    if rasterised:
+        # a pixel is in the silhouette when its centre is inside the body, so the true
+        # outline lies anywhere between the outer pixels' centres and the next pixels' (up
+        # to a pixel beyond the former): it pays from there on. Read to the centres
+        # themselves, the true outline pays ~0.5 px everywhere and the body shrinks into them
+        # (started at the truth, the silhouettes alone moved it to IoU 0.96). Within that
+        # band the ring's pixels say where it ends: their centres must lie outside the body
+        outside = (outside - 1.0).clamp_min(0)
     outside = torch.where(view[..., None, None], outside, torch.zeros_like(outside))
-    near = F.max_pool2d(inside.reshape(n * c, 1, h, w).float(), 3, 1, 1).reshape(n, c, h, w)
-    ring = (near > 0) & ~inside
     uv, mask = _sample_pixels(inside, samples, generator)
-    ring_uv, ring_mask = _sample_pixels(ring, samples, generator)
+    ring_uv = ring_mask = None
+    if rasterised:
+        near = F.max_pool2d(inside.reshape(n * c, 1, h, w).float(), 3, 1, 1)
+        ring = (near.reshape(n, c, h, w) > 0) & ~inside
+        ring_uv, ring_mask = _sample_pixels(ring, samples, generator)
     return outside, uv, mask, ring_uv, ring_mask, view.float()
 
 
@@ -372,10 +385,12 @@ def _losses(
         sdf, _ = capsule_sdf(targets.samples[:, :, None], parts.ends, parts.radii)
         uncovered = sdf.amin(-2).clamp_min(0).square()  # (n, C, N)
         cover = (uncovered * targets.sample_mask).sum(-1) / targets.sample_mask.sum(-1).clamp_min(1)
-        sdf, _ = capsule_sdf(targets.ring[:, :, None], parts.ends, parts.radii)
-        spilt = (-sdf.amin(-2)).clamp_min(0).square()  # (n, C, N)
-        spill = (spilt * targets.ring_mask).sum(-1) / targets.ring_mask.sum(-1).clamp_min(1)
-        per_view = (out + cover + spill) / (2 * s.silhouette_px**2)
+        if targets.ring is not None:
+            sdf, _ = capsule_sdf(targets.ring[:, :, None], parts.ends, parts.radii)
+            spilt = (-sdf.amin(-2)).clamp_min(0).square()  # (n, C, N)
+            ring = targets.ring_mask
+            cover = cover + (spilt * ring).sum(-1) / ring.sum(-1).clamp_min(1)
+        per_view = (out + cover) / (2 * s.silhouette_px**2)
         terms["silhouette"] = s.silhouette * (per_view * targets.view).sum().double()
     kp_joints = problem.keypoint_joints
     if s.keypoints > 0 and targets.keypoints is not None and kp_joints is not None:
@@ -496,7 +511,7 @@ def polish_posture(
     def problem(frames: Tensor | slice, rot: Tensor, trans: Tensor, body: Proportions):
         obs = video.observation
         targets = _silhouette_targets(
-            obs.silhouette[0, frames].float(), s.silhouette_samples, generator
+            obs.silhouette[0, frames].float(), s.silhouette_samples, generator, s.rasterised
         )
         keypoints = None
         if columns is not None:
