@@ -417,8 +417,7 @@ def run(cfg: RegisterSyntheticConfig):
     e3d = (joints - truth.joints).norm(dim=-1).mean(-1) / truth.height
     long_joints = [driven[i] for i in long]
     bone_err = _bone_direction_error_deg(reference, long_joints, joints, truth.joints)
-    unchanged = reference.rotations[result.C].clone()
-    unchanged[:, 0] = result.T_rotation
+    unchanged = _unchanged(reference, result)
     bone_err0 = _bone_direction_error_deg(
         reference,
         long_joints,
@@ -511,6 +510,14 @@ def run(cfg: RegisterSyntheticConfig):
     return metrics, columns, data
 
 
+def _unchanged(reference: Reference, result) -> Tensor:
+    """``(T', J, 3, 3)``: the reference's local rotations at the registration's C, turned by
+    its T (A = identity: "the student moves as the reference")."""
+    rotations = reference.rotations[result.C].clone()
+    rotations[:, 0] = result.T_rotation
+    return rotations
+
+
 def _iou_of_alternatives(reference: Reference, video, result, truth: Truth) -> dict[str, float]:
     """How well two other postures on the registration's own body (its G and proportions)
     cover the silhouettes, scored as its fit is (mean IoU over frames and cameras):
@@ -529,8 +536,7 @@ def _iou_of_alternatives(reference: Reference, video, result, truth: Truth) -> d
         None if result.proportions is None else result.proportions.part_scales,
     )
     shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
-    unchanged = reference.rotations[result.C].clone()
-    unchanged[:, 0] = result.T_rotation
+    unchanged = _unchanged(reference, result)
     out = {}
     for name, rotations, root in (
         ("truth", truth.local.clone(), truth.position),

@@ -228,15 +228,11 @@ def _fit_all_starts(
     best of ``yaw_starts`` screened upright starts, each warm start in ``inits`` and the
     keypoint start ``kp`` (``(R, W, 3, 3)``, ``(R, W, 3)``, or ``None``). Returns
     :func:`_fit_candidates`'s."""
-    rots, ps = list(_analytic_starts(scene, rows, cols, yaw_starts, refine))
-    rots, ps = [rots], [ps]
-    for er, ep in inits:
-        rots.append(er[:, :, None])
-        ps.append(ep[:, :, None])
-    if kp is not None:
-        rots.append(kp[0][:, :, None])
-        ps.append(kp[1][:, :, None])
-    return _refine_from(scene, rows, cols, torch.cat(rots, 2), torch.cat(ps, 2), iterations)
+    rot, p = _analytic_starts(scene, rows, cols, yaw_starts, refine)
+    warm = [*inits, *([kp] if kp is not None else [])]  # each one more start per pair
+    rots = torch.cat([rot, *(r[:, :, None] for r, _ in warm)], 2)
+    ps = torch.cat([p, *(q[:, :, None] for _, q in warm)], 2)
+    return _refine_from(scene, rows, cols, rots, ps, iterations)
 
 
 def _fit_candidates(

@@ -84,6 +84,12 @@ def _iou(scene: Scene, rotations, translation) -> float:
     return float(silhouette_iou(shapes, scene.video.cameras, sil, poses).mean())
 
 
+def _without_joints(scene: Scene):
+    """The scene's video with its 2-D joints taken out (the silhouettes alone)."""
+    obs = dataclasses.replace(scene.video.observation, keypoints=None)
+    return dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
+
+
 def _perturbed(scene: Scene, degrees: float, shift_m: float):
     """The truth with every driven joint turned by ``degrees`` about a random axis and the
     root moved by ``shift_m``."""
@@ -126,8 +132,7 @@ def test_the_polish_recovers_turned_joints_from_two_cameras(scene):
 
 
 def test_silhouettes_alone_improve_the_posture(scene):
-    obs = dataclasses.replace(scene.video.observation, keypoints=None)
-    video = dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
+    video = _without_joints(scene)
     rotations, translation = _perturbed(scene, 12.0, 0.04)
     out = polish_posture(scene.reference, video, scene.C, rotations, translation, 1.0)
     assert _e3d(scene, out.rotations, out.translation) < 0.6 * _e3d(scene, rotations, translation)
@@ -344,8 +349,7 @@ def test_a_students_other_proportions_are_recovered(large_scene, tmp_path_factor
 
 
 def test_without_2d_joints_the_proportions_are_not_measured(scene):
-    obs = dataclasses.replace(scene.video.observation, keypoints=None)
-    video = dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
+    video = _without_joints(scene)
     out = polish_posture(
         scene.reference,
         video,
@@ -392,8 +396,7 @@ def test_started_at_the_truth_the_silhouettes_alone_keep_it(scene):
     outside pays where the body covers it; the true outline costs nothing. Read to the
     centres (the default) the body shrinks into them: IoU 0.998 -> 0.958, the joints 0.8 %
     of the height off."""
-    obs = dataclasses.replace(scene.video.observation, keypoints=None)
-    video = dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
+    video = _without_joints(scene)
     s = PosturePolishSettings(steps=100, rasterised=True)
     out = polish_posture(
         scene.reference, video, scene.C, scene.rotations, scene.translation, 1.0, s
