@@ -23,7 +23,9 @@ drive, mean over joints and frames), ``e3d_mean`` (joint positions, fraction of 
 ``silhouette_iou_mean``; ``motions_match`` (1: :func:`motion.registration.movement.
 check_movement` finds the reference's movement, as ``motion register`` reports it) with its
 evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``, ``c_held_fraction``
-(video frames at the ends holding C's first or last reference frame, left out of the check); ``a_swing_err_deg_mean`` is the articulation error without the
+(video frames at the ends holding C's first or last reference frame, left out of the check),
+``student_froude`` and ``reference_froude`` (the gait check's Froude numbers; NaN: not
+measured) and ``student_froude_true`` (from the true root and the student's own legs); ``a_swing_err_deg_mean`` is the articulation error without the
 twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
 ``a_swing_err_deg_mean_no_change`` score the anchor "no articulation difference" (A =
 identity) the same way: the size of the true A, what a registration that recovers nothing
@@ -69,9 +71,14 @@ from motion.metrics import rotation_angle_error_deg
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
 from motion.registration.config import override
-from motion.registration.export import TRUSTED_FIT, joint_angles, summarise
+from motion.registration.export import TRUSTED_FIT, joint_angles, leg_lengths_m, summarise
 from motion.registration.inputs import features_from_sequence
-from motion.registration.movement import check_movement
+from motion.registration.movement import (
+    GRAVITY,
+    MovementSettings,
+    check_movement,
+    leg_length_m,
+)
 from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
 from motion.registration.refine import RefineSettings, place_poses
@@ -431,6 +438,7 @@ def run(cfg: RegisterSyntheticConfig):
         reference.frame_rate,
         video.frame_rate,
         result.G,
+        legs_m=leg_lengths_m(result, reference),
     )
     angles = joint_angles(result, reference, video.frame_rate)
     trusted = (result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames)
@@ -480,6 +488,9 @@ def run(cfg: RegisterSyntheticConfig):
         "c_stalled_fraction": float((result.C.diff() == 0).double().mean()),
         "c_fast_fraction": movement.fast_fraction,
         "c_held_fraction": (movement.held_start + movement.held_end) / n,
+        "student_froude": movement.student_froude,
+        "reference_froude": movement.reference_froude,
+        "student_froude_true": _true_froude(student or reference, truth, video.frame_rate),
         **findings,
         "sec_per_video_frame": seconds / n,
         "sec_stage1": result.timings["stage1"],
@@ -558,6 +569,22 @@ def true_part_scales(reference: Reference, student: Reference | None) -> Tensor:
     if student is None:
         return torch.ones(reference.spec.num_parts, dtype=torch.float64)
     return student.spec.shapes.axis.norm(dim=-1) / reference.spec.shapes.axis.norm(dim=-1)
+
+
+def _true_froude(owner: Reference, truth: Truth, rate: float) -> float:
+    """The synthetic student's true Froude number over the whole video (its root's net
+    speed, the mean positions over ``MovementSettings().end_window_s`` at each end, and the
+    standing hip height of ``owner``'s skeleton, the student's)."""
+    n = truth.position.shape[0]
+    k = max(1, min(round(MovementSettings().end_window_s * rate), n // 2))
+    if n - k <= 0:
+        return math.nan
+    speed = float((truth.position[-k:].mean(0) - truth.position[:k].mean(0)).norm()) / (
+        (n - k) / rate
+    )
+    segments = SegmentMap.from_roles(owner.skeleton, owner.model.mapping)
+    leg = leg_length_m(owner.skeleton, owner.skeleton.offsets, segments)
+    return speed**2 / (GRAVITY * leg)
 
 
 def proportion_errors(reference: Reference, student: Reference | None, result) -> dict[str, float]:

@@ -42,6 +42,7 @@ from motion.registration.export import (
     RegistrationSummary,
     joint_angles,
     joints_trusted,
+    leg_lengths_m,
     proportion_words,
     save_registration,
     student_kinematics,
@@ -269,7 +270,14 @@ def _write_outputs(
     angles = joint_angles(reg, reference, rate, video.start, video.step)
     seen = points_in_view(rig, student_kinematics(reg, reference).positions)
     movement = check_movement(
-        reg.C, reg.T_translation, reference.root, reference.frame_rate, rate, reg.G, cfg.movement
+        reg.C,
+        reg.T_translation,
+        reference.root,
+        reference.frame_rate,
+        rate,
+        reg.G,
+        cfg.movement,
+        legs_m=leg_lengths_m(reg, reference),
     )
     # a frame is trusted where its fit is good, the coordinate's bones are in view, and the
     # reference has a counterpart (not an end held at C's first or last reference frame)

@@ -48,7 +48,7 @@ from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
 from motion.registration.method_error import MethodError, shipped_method_error
-from motion.registration.movement import MovementCheck
+from motion.registration.movement import MovementCheck, leg_length_m
 from motion.registration.types import (
     Proportions,
     Reference,
@@ -258,14 +258,32 @@ def _check_rate(frame_rate: float) -> float:
     return frame_rate
 
 
+def student_offsets(reg: Registration, reference: Reference) -> Tensor:
+    """``(J, 3)`` float64 metres: the registered student's joint offsets, the reference's
+    scaled by ``reg.G`` (and the student's proportions, where measured)."""
+    offsets = reference.skeleton.offsets.to(F64) * float(reg.G)
+    if reg.proportions is not None:
+        offsets = offsets * reg.proportions.joint_scales().to(F64)[:, None]
+    return offsets
+
+
+def leg_lengths_m(reg: Registration, reference: Reference) -> tuple[float, float]:
+    """The reference's and the registered student's standing hip heights, metres
+    (:func:`motion.registration.movement.leg_length_m`)."""
+    segments = _segments(reference)
+    skeleton = reference.skeleton
+    return (
+        leg_length_m(skeleton, skeleton.offsets, segments),
+        leg_length_m(skeleton, student_offsets(reg, reference), segments),
+    )
+
+
 def student_kinematics(reg: Registration, reference: Reference) -> FKResult:
     """The registered student's forward kinematics in the cameras' world frame: the
     reference's skeleton scaled by ``reg.G`` (and the student's proportions, where
     measured), local rotations ``reg.rotations``, root joint at ``reg.T_translation``.
     Positions ``(T', J, 3)`` metres, float64."""
-    offsets = reference.skeleton.offsets.to(F64) * float(reg.G)
-    if reg.proportions is not None:
-        offsets = offsets * reg.proportions.joint_scales().to(F64)[:, None]
+    offsets = student_offsets(reg, reference)
     return forward_kinematics(
         reference.skeleton, reg.rotations.to(F64), reg.T_translation.to(F64) - offsets[0], offsets
     )

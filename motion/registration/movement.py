@@ -30,9 +30,21 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   moves twice as fast as the reference there: another tempo of movement, or another one (a
   real student speeds up smoothly, by tens of percent).
 
+* **Gait.** Walking and running are two movements: people walk below a Froude number
+  ``v^2 / (g L)`` (``v`` the speed, ``L`` the standing hip height) of about 0.5 and run above
+  it, whatever their size (Alexander, *Physiol. Rev.* 69, 1989; Kram, Domingo & Ferris,
+  *J. Exp. Biol.* 200, 1997: the walk-run transition at Froude 0.5 under every gravity
+  tried). Each performer's Froude number is taken over the compared stretch at their own
+  clock (the student's over the video's seconds, the reference's over its own): one below
+  ``walking_froude`` (0.3: 1.6 m/s for a 0.9 m leg, a brisk walk) and the other at or above
+  ``running_froude`` (0.5) is a walk against a run. Between the two nothing is said (a race
+  walker, a slow jogger). Measured over at least ``gait_min_s`` seconds, a stride or so, so
+  that one step's surge averages out. Speed alone is still no criterion: a patient who
+  walks at 0.5 m/s against a reference at 1.3 m/s walks.
+
 Thresholds were set from the physics above and checked (not fitted) on synthetic students
 of the bundled CMU motions and on the real videos; the measurements are in the closing
-notes of issue 39 and docs/experiments.md. Speed alone is not a criterion: a slow
+notes of issue 39 and docs/experiments.md. Speed ratio alone is not a criterion: a slow
 student is a finding, not another movement.
 """
 
@@ -45,9 +57,28 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from motion.settings import Settings, setting
+from motion.angles import SegmentMap
+from motion.kinematics import Skeleton
+from motion.settings import SettingError, Settings, setting
 
-__all__ = ["MovementCheck", "MovementSettings", "check_movement", "held_ends"]
+__all__ = [
+    "GRAVITY",
+    "HIP_HEIGHT_PER_HIP_TO_ANKLE",
+    "MovementCheck",
+    "MovementSettings",
+    "check_movement",
+    "held_ends",
+    "leg_length_m",
+]
+
+#: m/s^2, for the Froude number
+GRAVITY = 9.81
+
+#: standing hip height (greater trochanter, 0.530 of stature) over the hip-to-ankle length
+#: (0.530 - 0.039 of stature, the ankle's height being 0.039): Winter's segment lengths
+#: (D. A. Winter, *Biomechanics and Motor Control of Human Movement*, 4th ed., 2009,
+#: Fig. 4.1, after Drillis & Contini). The Froude number's ``L`` is the hip height.
+HIP_HEIGHT_PER_HIP_TO_ANKLE = 0.530 / 0.491
 
 
 @dataclass(frozen=True)
@@ -115,6 +146,34 @@ class MovementSettings(Settings):
         "step, is left out of the checks and the findings silently)",
         ge=0,
     )
+    walking_froude: float = setting(
+        0.3,
+        "a performer whose Froude number v^2 / (g L) over the compared stretch (v the net "
+        "speed, L the standing hip height) is below this walks or stands (0.3: 1.6 m/s for a "
+        "0.9 m leg)",
+        gt=0,
+    )
+    running_froude: float = setting(
+        0.5,
+        "a performer whose Froude number is at least this runs (the walk-run transition); "
+        "one walking against one running is another movement",
+        gt=0,
+    )
+    gait_min_s: float = setting(
+        1.0,
+        "seconds: the gait is compared only when the student's compared stretch lasts at "
+        "least this (about one stride)",
+        ge=0,
+    )
+
+    def validate(self) -> None:
+        """Check every field, then that ``walking_froude < running_froude``."""
+        super().validate()
+        if not self.walking_froude < self.running_froude:
+            raise SettingError(
+                f"{type(self).__name__}: walking_froude must be below running_froude; got "
+                f"{self.walking_froude} >= {self.running_froude}"
+            )
 
 
 @dataclass(frozen=True)
@@ -135,6 +194,9 @@ class MovementCheck:
             reference frame before (after) the one that matches it, left out of the checks
             (0 when the held frames exceed ``max_held``; then they count as stalls).
         warnings: sentences for the user about the held frames (empty when none).
+        student_froude, reference_froude: each performer's Froude number over the compared
+            stretch at their own clock (``nan``: not measured: no leg lengths given, the
+            stretch shorter than ``gait_min_s``, or C standing still).
     """
 
     motions_match: bool
@@ -147,6 +209,8 @@ class MovementCheck:
     held_start: int = 0
     held_end: int = 0
     warnings: list[str] = field(default_factory=list)
+    student_froude: float = math.nan
+    reference_froude: float = math.nan
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -198,6 +262,35 @@ def _net_displacement(positions: Tensor, k: int) -> float:
     return float((positions[-k:].mean(0) - positions[:k].mean(0)).norm())
 
 
+def leg_length_m(skeleton: Skeleton, offsets: Tensor, segments: SegmentMap) -> float:
+    """The standing hip height of a body, metres (the Froude number's ``L``): the mean over
+    both legs of the hip-to-knee and knee-to-ankle distances of the rest pose of ``offsets``
+    ``(J, 3)`` metres (the skeleton's joint offsets, scaled as the body's), times
+    :data:`HIP_HEIGHT_PER_HIP_TO_ANKLE`."""
+    rest = torch.zeros(skeleton.num_joints, 3, dtype=torch.float64)
+    offsets = offsets.detach().to(torch.float64).cpu()
+    for j in range(1, skeleton.num_joints):  # parents come before their children
+        rest[j] = rest[int(skeleton.parents[j])] + offsets[j]
+    legs = []
+    for side in (0, 1):
+        hip, knee, ankle = (
+            skeleton.index(segments.joint(segment, side)) for segment in ("thigh", "shank", "foot")
+        )
+        legs.append(float((rest[knee] - rest[hip]).norm() + (rest[ankle] - rest[knee]).norm()))
+    return HIP_HEIGHT_PER_HIP_TO_ANKLE * sum(legs) / 2
+
+
+def _froude(speed_m_s: float, leg_m: float) -> float:
+    return speed_m_s**2 / (GRAVITY * leg_m)
+
+
+def _gait(froude: float, s: MovementSettings) -> str | None:
+    """``"walk"`` (or stand), ``"run"``, or ``None`` between the two thresholds."""
+    if froude < s.walking_froude:
+        return "walk"
+    return "run" if froude >= s.running_froude else None
+
+
 def check_movement(
     c: Tensor,
     translation: Tensor,
@@ -206,6 +299,7 @@ def check_movement(
     video_rate: float,
     scale: float,
     settings: MovementSettings | None = None,
+    legs_m: tuple[float, float] | None = None,
 ) -> MovementCheck:
     """Decide whether the student performs the reference's movement (module docstring).
 
@@ -216,6 +310,8 @@ def check_movement(
         reference_rate, video_rate: frames per second.
         scale: G.
         settings: :class:`MovementSettings` (defaults otherwise).
+        legs_m: the reference's and the student's standing hip heights, metres
+            (:func:`leg_length_m`; ``None``: the gait is not compared).
 
     Returns:
         :class:`MovementCheck`.
@@ -265,4 +361,44 @@ def check_movement(
             f"reference's pace or more on {100 * fast:.0f} % of the video's frames (at most "
             f"{100 * s.max_fast:.0f} % for the same movement)"
         )
-    return MovementCheck(not reasons, reasons, student, ref, stalled, fast, speed, start, end, held)
+    froudes = (math.nan, math.nan)
+    if legs_m is not None and (n - k) / video_rate >= s.gait_min_s:
+        # each performer's net speed at their own clock: the mean positions over the end
+        # windows lie (n - k) video frames apart for the student, and the reference frames
+        # C matches to those windows apart for the reference
+        reference_s = float(c[-k:].double().mean() - c[:k].double().mean()) / reference_rate
+        if reference_s > 0:
+            speeds = (ref / scale / reference_s, student / ((n - k) / video_rate))
+            froudes = (_froude(speeds[0], legs_m[0]), _froude(speeds[1], legs_m[1]))
+            gaits = [_gait(f, s) for f in froudes]
+            if set(gaits) == {"walk", "run"}:
+                said = [
+                    f"{who} at {v:.1f} m/s (Froude number {f:.2f} for a {leg:.2f} m leg: "
+                    f"{'a walk' if gait == 'walk' else 'a run'})"
+                    for who, v, f, leg, gait in zip(
+                        ("the reference", "the student"),
+                        speeds,
+                        froudes,
+                        legs_m,
+                        gaits,
+                        strict=True,
+                    )
+                ]
+                reasons.append(
+                    f"{said[1]} but {said[0]}: people walk below {s.walking_froude:g} and run "
+                    f"from {s.running_froude:g}"
+                )
+    return MovementCheck(
+        motions_match=not reasons,
+        reasons=reasons,
+        student_travel_m=student,
+        reference_travel_m=ref,
+        stalled_fraction=stalled,
+        fast_fraction=fast,
+        speed_ratio=speed,
+        held_start=start,
+        held_end=end,
+        warnings=held,
+        student_froude=froudes[1],
+        reference_froude=froudes[0],
+    )

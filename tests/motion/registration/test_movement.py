@@ -1,7 +1,8 @@
 """The movement check (motion.registration.movement) on constructed registrations whose
 travel and time warp are known: a walker at another tempo matches; a student in place, one
-covering 2.5 times the ground, a stop-and-go C and a racing C do not; the verdict does not
-depend on where the world's origin or axes are."""
+covering 2.5 times the ground, a stop-and-go C, a racing C and a runner against a walker (by
+the Froude numbers) do not; the verdict does not depend on where the world's origin or axes
+are."""
 
 from __future__ import annotations
 
@@ -10,7 +11,18 @@ import math
 import pytest
 import torch
 
-from motion.registration.movement import MovementSettings, check_movement, held_ends
+from motion.angles import SegmentMap
+from motion.kinematics import forward_kinematics
+from motion.registration.movement import (
+    GRAVITY,
+    HIP_HEIGHT_PER_HIP_TO_ANKLE,
+    MovementSettings,
+    check_movement,
+    held_ends,
+    leg_length_m,
+)
+from motion.registration.types import Reference
+from tests.motion.registration.conftest import REFERENCE
 
 REF_RATE, VIDEO_RATE = 120.0, 25.0
 F64 = torch.float64
@@ -29,10 +41,16 @@ def _warped_c(n: int = 50, speed: float = 0.9, start: int = 20) -> torch.Tensor:
     return (start + pace * (t + 1.5 * torch.sin(t / 8))).round().long()
 
 
-def _check(c, translation, root, scale=1.0, **settings):
+def _check(c, translation, root, scale=1.0, legs_m=None, **settings):
     return check_movement(
-        c, translation, root, REF_RATE, VIDEO_RATE, scale, MovementSettings(**settings)
+        c, translation, root, REF_RATE, VIDEO_RATE, scale, MovementSettings(**settings), legs_m
     )
+
+
+def _straight(n: int, speed: float) -> torch.Tensor:
+    """``(n, 3)`` a student's root going along +x at ``speed`` m/s, one row per video frame."""
+    x = speed * torch.arange(n, dtype=F64) / VIDEO_RATE
+    return torch.stack([x, 0.9 + 0 * x, 1.0 + 0 * x], -1)
 
 
 def test_another_walker_at_another_tempo_matches():
@@ -176,3 +194,71 @@ def test_bad_settings_are_refused():
         MovementSettings(fast_step_factor=0.5)
     with pytest.raises(ValueError, match=r"travelling_m must be >= 0; got -1\.0"):
         MovementSettings(travelling_m=-1.0)
+    with pytest.raises(ValueError, match=r"walking_froude must be below running_froude"):
+        MovementSettings(walking_froude=0.5, running_froude=0.5)
+
+
+LEGS = (0.9, 0.95)  # the reference's and the student's hip heights, metres
+
+
+def _froude(speed, leg):
+    return speed**2 / (GRAVITY * leg)
+
+
+def test_a_runner_against_a_walker_does_not_match_by_the_froude_numbers():
+    """The reference walks at 1.2 m/s (Froude 0.16); a student going 2.4 m/s (0.62) over a
+    stretch that C plays at 1.5 times the reference's pace (a runner's cadence) covers 1.33
+    times the reference's ground per stride, which the travel check allows: the gait check
+    alone says no, with both speeds. The same student at 1.5 m/s (0.24) walks briskly and
+    matches; at 1.9 m/s (0.39), between a walk and a run, nothing is said."""
+    root = _walking_reference(frames=1200)
+    c = _warped_c(n=60, speed=1.5, start=0)
+    run = _check(c, _straight(60, 2.4), root, legs_m=LEGS)
+    assert not run.motions_match and len(run.reasons) == 1
+    assert run.reasons[0] == (
+        "the student at 2.4 m/s (Froude number 0.62 for a 0.95 m leg: a run) but the "
+        "reference at 1.2 m/s (Froude number 0.16 for a 0.90 m leg: a walk): people walk "
+        "below 0.3 and run from 0.5"
+    )
+    assert run.student_froude == pytest.approx(_froude(2.4, LEGS[1]), rel=1e-9)
+    # the reference's speed at its own clock: the sway's 3 cm across the stretch aside
+    assert run.reference_froude == pytest.approx(_froude(1.2, LEGS[0]), rel=0.01)
+    brisk = _check(c, _straight(60, 1.5), root, legs_m=LEGS)
+    assert brisk.motions_match and brisk.student_froude == pytest.approx(_froude(1.5, 0.95))
+    between = _check(c, _straight(60, 1.9), root, legs_m=LEGS)
+    assert between.motions_match and 0.3 < between.student_froude < 0.5
+
+
+def test_a_walker_against_a_running_reference_does_not_match():
+    root = _walking_reference(frames=1200, speed=3.0)  # Froude 1.02
+    c = _warped_c(n=60, speed=0.6, start=0)
+    walk = _check(c, _straight(60, 1.3), root, legs_m=LEGS)
+    assert not walk.motions_match and "a walk) but the reference at 3.0 m/s" in walk.reasons[0]
+    # without the legs, or over less than gait_min_s, the gait is not compared
+    assert _check(c, _straight(60, 1.3), root).motions_match
+    short = _check(c[:20], _straight(20, 1.3), root, legs_m=LEGS)  # 0.8 s at 25 fps
+    assert short.motions_match and math.isnan(short.student_froude)
+    assert math.isnan(short.reference_froude)
+    held = _check(torch.full((60,), 40), _straight(60, 1.3), root, legs_m=LEGS)
+    assert math.isnan(held.reference_froude)  # C never moves: no reference speed
+
+
+def test_the_leg_length_is_the_rest_poses_hip_to_ankle_times_winters_ratio():
+    """On the bundled CMU walk against its rest pose computed by forward kinematics; scaling
+    the offsets by 1.1 scales it by 1.1."""
+    reference = Reference.from_bvh(REFERENCE)
+    skeleton = reference.skeleton
+    segments = SegmentMap.from_roles(skeleton, reference.model.mapping)
+    eye = torch.eye(3, dtype=F64).expand(skeleton.num_joints, 3, 3)
+    rest = forward_kinematics(skeleton, eye, torch.zeros(3, dtype=F64)).positions
+    sides = []
+    for side in (0, 1):
+        hip, knee, ankle = (
+            rest[skeleton.index(segments.joint(s, side))] for s in ("thigh", "shank", "foot")
+        )
+        sides.append(float((knee - hip).norm() + (ankle - knee).norm()))
+    expected = HIP_HEIGHT_PER_HIP_TO_ANKLE * sum(sides) / 2
+    got = leg_length_m(skeleton, skeleton.offsets, segments)
+    assert got == pytest.approx(expected, rel=1e-12)
+    assert 0.7 < got < 1.0  # an adult's hip height, metres
+    assert leg_length_m(skeleton, 1.1 * skeleton.offsets, segments) == pytest.approx(1.1 * got)
