@@ -281,11 +281,13 @@ def test_every_time_is_on_the_source_videos_clock(register_run, tmp_path, capsys
 
 
 @requires_shared_data()
-@pytest.mark.parametrize("movement", ["09_01", "02_04"], ids=["run", "jump"])
+@pytest.mark.parametrize("movement", ["09_01", "02_04", "02_03"], ids=["run", "jump", "jog"])
 def test_another_movement_is_said_first_and_no_difference_is_stated(movement, tmp_path, capsys):
-    """A CMU run or jump (another subject, ../shared/data) against the bundled walk: the
+    """A CMU run, jump or jog (another subject, ../shared/data) against the bundled walk: the
     summary, the printed lines and the report say first that the movements differ, and no
-    joint difference is stated (they stay in summary.json with stated false and why)."""
+    joint difference is stated (they stay in summary.json with stated false and why). The
+    jog covers no more ground per stride than a long-striding walker: its gait (the Froude
+    numbers) tells it apart."""
     seq = synthesize(
         SHARED_DATA / "bvh" / "cmu_cgspeed" / f"{movement}.bvh", SynthConfig.from_assignments(SYNTH)
     )
@@ -305,6 +307,9 @@ def test_another_movement_is_said_first_and_no_difference_is_stated(movement, tm
     assert summary["motions_match"] is False
     reasons = summary["movement"]["reasons"]
     assert reasons and summary["warnings"][: len(reasons)] == reasons
+    if movement == "02_03":
+        assert reasons == [r for r in reasons if "Froude number" in r and ": a run)" in r]
+        assert summary["movement"]["student_froude"] >= 0.5
     assert all(d["stated"] is False and d["why"] for d in summary["largest_differences"])
     printed = capsys.readouterr().out.splitlines()
     assert printed[1].strip().startswith("the student does not seem to perform the reference")
