@@ -30,6 +30,14 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   moves twice as fast as the reference there: another tempo of movement, or another one (a
   real student speeds up smoothly, by tens of percent).
 
+* **Pace.** Going through the reference's movement at under a quarter of its pace
+  (``min_pace``: the least-squares slope of C, reference seconds per video second) is no
+  performance of it at another tempo: the student holds one of its postures (stands while
+  the reference walks) and C crawls to keep the least bad match. One movement's tempo varies
+  between people by about a factor 2 (a walking cadence spans some 60 to 140 steps a
+  minute); the stalls above are counted only where C should advance by two frames or more,
+  so they cannot see a C that hardly advances at all. Taken over at least
+  ``min_compared_s`` seconds.
 * **Gait.** Walking and running are two movements: people walk below a Froude number
   ``v^2 / (g L)`` (``v`` the speed, ``L`` the standing hip height) of about 0.5 and run above
   it, whatever their size (Alexander, *Physiol. Rev.* 69, 1989; Kram, Domingo & Ferris,
@@ -38,7 +46,7 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   clock (the student's over the video's seconds, the reference's over its own): one below
   ``walking_froude`` (0.3: 1.6 m/s for a 0.9 m leg, a brisk walk) and the other at or above
   ``running_froude`` (0.5) is a walk against a run. Between the two nothing is said (a race
-  walker, a slow jogger). Measured over at least ``gait_min_s`` seconds, a stride or so, so
+  walker, a slow jogger). Measured over at least ``min_compared_s`` seconds, a stride or so, so
   that one step's surge averages out. Speed alone is still no criterion: a patient who
   walks at 0.5 m/s against a reference at 1.3 m/s walks.
 
@@ -159,10 +167,16 @@ class MovementSettings(Settings):
         "one walking against one running is another movement",
         gt=0,
     )
-    gait_min_s: float = setting(
+    min_pace: float = setting(
+        0.25,
+        "the least pace (reference seconds per video second, C's slope) at which the student "
+        "still performs the reference's movement rather than holding one of its postures",
+        ge=0,
+    )
+    min_compared_s: float = setting(
         1.0,
-        "seconds: the gait is compared only when the student's compared stretch lasts at "
-        "least this (about one stride)",
+        "seconds: the pace and the gait are compared only when the student's compared "
+        "stretch lasts at least this (about one stride)",
         ge=0,
     )
 
@@ -196,7 +210,7 @@ class MovementCheck:
         warnings: sentences for the user about the held frames (empty when none).
         student_froude, reference_froude: each performer's Froude number over the compared
             stretch at their own clock (``nan``: not measured: no leg lengths given, the
-            stretch shorter than ``gait_min_s``, or C standing still).
+            stretch shorter than ``min_compared_s``, or C standing still).
     """
 
     motions_match: bool
@@ -361,8 +375,16 @@ def check_movement(
             f"reference's pace or more on {100 * fast:.0f} % of the video's frames (at most "
             f"{100 * s.max_fast:.0f} % for the same movement)"
         )
+    long_enough = (n - k) / video_rate >= s.min_compared_s
+    if long_enough and speed < s.min_pace:
+        reasons.append(
+            f"the matching reference moment advances at {100 * speed:.0f} % of the "
+            f"reference's pace: the student holds one of its postures rather than performing "
+            f"the movement (at least {100 * s.min_pace:.0f} % for the same movement at "
+            "another tempo)"
+        )
     froudes = (math.nan, math.nan)
-    if legs_m is not None and (n - k) / video_rate >= s.gait_min_s:
+    if legs_m is not None and long_enough:
         # each performer's net speed at their own clock: the mean positions over the end
         # windows lie (n - k) video frames apart for the student, and the reference frames
         # C matches to those windows apart for the reference

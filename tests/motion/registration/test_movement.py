@@ -234,7 +234,7 @@ def test_a_walker_against_a_running_reference_does_not_match():
     c = _warped_c(n=60, speed=0.6, start=0)
     walk = _check(c, _straight(60, 1.3), root, legs_m=LEGS)
     assert not walk.motions_match and "a walk) but the reference at 3.0 m/s" in walk.reasons[0]
-    # without the legs, or over less than gait_min_s, the gait is not compared
+    # without the legs, or over less than min_compared_s, the gait is not compared
     assert _check(c, _straight(60, 1.3), root).motions_match
     short = _check(c[:20], _straight(20, 1.3), root, legs_m=LEGS)  # 0.8 s at 25 fps
     assert short.motions_match and math.isnan(short.student_froude)
@@ -262,3 +262,20 @@ def test_the_leg_length_is_the_rest_poses_hip_to_ankle_times_winters_ratio():
     assert got == pytest.approx(expected, rel=1e-12)
     assert 0.7 < got < 1.0  # an adult's hip height, metres
     assert leg_length_m(skeleton, 1.1 * skeleton.offsets, segments) == pytest.approx(1.1 * got)
+
+
+def test_a_student_who_holds_a_posture_while_c_crawls_does_not_match():
+    """A student standing still for 2 s against a walk whose C crawls through 0.05 s of it
+    (2 % of its pace; the travels both under half a metre, no stall counted at a nominal step
+    under 2): another movement. The same over 0.8 s (under min_compared_s) says nothing, and
+    a student at half the reference's pace matches."""
+    root = _walking_reference()
+    c = torch.linspace(100, 106, 50).round().long()  # 6 reference frames over 50 video frames
+    still = root[100:101].expand(50, 3).clone()
+    result = _check(c, still, root)
+    assert result.speed_ratio == pytest.approx(6 / 49 * VIDEO_RATE / REF_RATE, rel=0.05)
+    assert not result.motions_match and len(result.reasons) == 1
+    assert result.reasons[0].startswith("the matching reference moment advances at 3 % of the")
+    assert _check(c[:20], still[:20], root).motions_match
+    half = _warped_c(speed=0.5)
+    assert _check(half, root[half], root).motions_match  # a slow walker: a finding
