@@ -70,7 +70,7 @@ from motion.kinematics import forward_kinematics
 from motion.metrics import rotation_angle_error_deg
 from motion.registration import Reference, RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
-from motion.registration.config import override
+from motion.registration.config import override, parse_value
 from motion.registration.export import TRUSTED_FIT, joint_angles, leg_lengths_m, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import (
@@ -139,11 +139,11 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "(0, motion register's default: the reference's proportions; 100: fitted)",
         ge=0,
     )
-    registration: dict[str, float] = setting(
+    registration: dict[str, str] = setting(
         {},
-        "any other numeric setting of the registration by its dotted key, as `motion "
-        "register` names it under `registration` (refine.articulation_std: 0.15), applied "
-        "after the fields above",
+        "any other setting of the registration by its dotted key, as `motion register` names "
+        "it under `registration` (refine.articulation_std: 0.15), its value read as on "
+        "`motion register`'s command line; applied after the fields above",
     )
 
 
@@ -365,7 +365,7 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         seed=cfg.seed,
     )
     for key, value in cfg.registration.items():  # a bad key or value: a ConfigError naming it
-        settings = override(settings, key, value, where="registration")
+        settings = override(settings, key, parse_value(value), where="registration")
     return settings
 
 

@@ -286,13 +286,20 @@ def _parse_assignment(item: str) -> tuple[str, object]:
         raise ConfigError(
             f"expected a setting as key=value (e.g. refine.particles=50); got {item!r}"
         )
+    return key, parse_value(text)
+
+
+def parse_value(text: str) -> object:
+    """A setting's value written as text, read as the command line reads ``key=value``:
+    a YAML scalar or list (``0.15``, ``true``, ``[1, 2]``), ``none`` / ``null`` (or nothing)
+    for None, any other text as itself (the field's check says whether it fits)."""
     try:
         value = load_yaml(text, "command line", inline=True) if text.strip() else None
     except ConfigError:  # not YAML: the text itself (the field's check says if it fits)
         value = text
     if isinstance(value, str) and value.lower() in ("none", "null"):
         value = None
-    return key, value
+    return value
 
 
 def load_config(

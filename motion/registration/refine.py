@@ -255,6 +255,15 @@ class RefineSettings(Settings):
     tempo_band: int = setting(
         24, "half-width of the tempo alignment's band (tempo_std), reference frames", ge=0
     )
+    tempo_placement: str = setting(
+        "registered",
+        "where the tempo alignment (tempo_std) places each candidate reference posture before "
+        "scoring BP's part estimates against it: registered (by the registration's T) or "
+        "fitted (by the rigid motion that takes its parts' ends nearest the estimates' in "
+        "least squares, the parts weighted as the cameras see them: the posture compared "
+        "free of T's error, as the truth of another performer's C compares postures)",
+        choices=("registered", "fitted"),
+    )
     smooth_s: float = setting(
         0.1,
         "seconds, the standard deviation of a Gaussian in time by which the final "
@@ -638,18 +647,34 @@ def _tempo_c(
     for a in range(0, c.shape[0], FRAME_CHUNK):
         sl = slice(a, a + FRAME_CHUNK)
         states = offsets[sl, None] + torch.arange(width)  # (m, W)
-        targets = place_poses(rotation[sl, None], translation[sl, None], problem.body[states])
+        seen = _in_view(problem, poses[sl])  # (m, P)
+        if s.tempo_placement == "fitted":
+            targets = _fitted_postures(problem.spec, problem.body[states], poses[sl], seen)
+        else:
+            targets = place_poses(rotation[sl, None], translation[sl, None], problem.body[states])
         per_edge = targets.permute(0, 2, 1, 3).reshape(-1, width, 7)  # (m P, W, 7)
         coupling = LookupPose(per_edge, s.couple_pos_std, s.couple_rot_std)
         choice = torch.arange(width, dtype=poses.dtype).expand(1, per_edge.shape[0], width)
         x = poses[sl].reshape(1, -1, 1, 7)
         lp = coupling.log_potential(slice(None), choice[..., None], x, width)  # (1, m P, W, 1)
-        seen = _in_view(problem, poses[sl])  # (m, P)
         cost[sl] = -(lp[0, :, :, 0].reshape(-1, p, width) * seen[..., None]).sum(1).double()
     ratio = problem.reference.frame_rate / problem.video.frame_rate
     relative = s.tempo_std / math.sqrt(problem.video.frame_rate)  # per video frame
     prior = TempoPrior(ratio, s.slope_weight, relative)
     return tempo_align(cost, offsets, problem.max_step, prior).path[0]
+
+
+def _fitted_postures(spec: BodySpec, body: Tensor, estimates: Tensor, seen: Tensor) -> Tensor:
+    """Each candidate posture ``body`` ``(m, W, P, 7)`` (part poses in the root's frame)
+    placed by the rigid motion that takes its parts' ends nearest those of ``estimates``
+    ``(m, P, 7)`` in least squares (:func:`motion.body.fit.rigid_fit`), each part weighted by
+    ``seen`` ``(m, P)`` (a frame that sees no part weighs them all alike) -> ``(m, W, P, 7)``."""
+    source = spec.landmarks(body.double()).flatten(-3, -2)  # (m, W, 2P, 3)
+    target = spec.landmarks(estimates.double()).flatten(-3, -2)[:, None].expand_as(source)
+    weight = seen.double().repeat_interleave(2, -1)  # (m, 2P): both ends of a part
+    weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
+    rotation, translation = rigid_fit(source, target, weight[:, None])
+    return place_poses(rotation, translation, body.double()).to(body)
 
 
 def _fit(problem: _Problem, poses: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:

@@ -217,11 +217,17 @@ def test_bone_direction_error_measures_a_bend_and_ignores_a_twist_and_the_skelet
 def test_any_registration_setting_is_set_by_its_dotted_key_and_a_wrong_one_is_refused():
     base = _settings(RegisterSyntheticConfig())
     cfg = RegisterSyntheticConfig(
-        registration={"refine.articulation_std": 0.15, "polish.steps": 7}, polish_steps=50
+        registration={
+            "refine.articulation_std": 0.15,
+            "polish.steps": 7,
+            "refine.tempo_placement": "fitted",
+        },
+        polish_steps=50,
     )
     settings = _settings(cfg)
     assert settings.refine.articulation_std == 0.15 != base.refine.articulation_std
     assert settings.polish.steps == 7  # applied after the experiment's own fields
+    assert settings.refine.tempo_placement == "fitted" != base.refine.tempo_placement
     assert settings.refine.particles == base.refine.particles  # the rest untouched
     with pytest.raises(ConfigError, match=r"refine\.articulation_sd.*did you mean"):
         _settings(RegisterSyntheticConfig(registration={"refine.articulation_sd": 0.1}))
