@@ -261,7 +261,9 @@ class RefineSettings(Settings):
         "scoring BP's part estimates against it: registered (by the registration's T) or "
         "fitted (by the rigid motion that takes its parts' ends nearest the estimates' in "
         "least squares, the parts weighted as the cameras see them: the posture compared "
-        "free of T's error, as the truth of another performer's C compares postures)",
+        "free of T's error, as the truth of another performer's C compares postures; "
+        "measured on other performers, C moved by 0.3 frames at most: "
+        "docs/results/register_cross_tempo.md)",
         choices=("registered", "fitted"),
     )
     smooth_s: float = setting(
