@@ -74,9 +74,9 @@ from motion.registration.config import override, parse_value
 from motion.registration.export import TRUSTED_FIT, joint_angles, leg_lengths_m, summarise
 from motion.registration.inputs import features_from_sequence
 from motion.registration.movement import (
-    GRAVITY,
     MovementSettings,
     check_movement,
+    froude_number,
     leg_length_m,
 )
 from motion.registration.pipeline import silhouette_iou
@@ -584,7 +584,7 @@ def _true_froude(owner: Reference, truth: Truth, rate: float) -> float:
     )
     segments = SegmentMap.from_roles(owner.skeleton, owner.model.mapping)
     leg = leg_length_m(owner.skeleton, owner.skeleton.offsets, segments)
-    return speed**2 / (GRAVITY * leg)
+    return froude_number(speed, leg)
 
 
 def proportion_errors(reference: Reference, student: Reference | None, result) -> dict[str, float]:

@@ -75,6 +75,7 @@ __all__ = [
     "MovementCheck",
     "MovementSettings",
     "check_movement",
+    "froude_number",
     "held_ends",
     "leg_length_m",
 ]
@@ -294,7 +295,8 @@ def leg_length_m(skeleton: Skeleton, offsets: Tensor, segments: SegmentMap) -> f
     return HIP_HEIGHT_PER_HIP_TO_ANKLE * sum(legs) / 2
 
 
-def _froude(speed_m_s: float, leg_m: float) -> float:
+def froude_number(speed_m_s: float, leg_m: float) -> float:
+    """``v^2 / (g L)`` of a speed (m/s) and a standing hip height (m): dimensionless."""
     return speed_m_s**2 / (GRAVITY * leg_m)
 
 
@@ -303,6 +305,28 @@ def _gait(froude: float, s: MovementSettings) -> str | None:
     if froude < s.walking_froude:
         return "walk"
     return "run" if froude >= s.running_froude else None
+
+
+def _compare_gaits(
+    speeds: tuple[float, float], legs_m: tuple[float, float], s: MovementSettings
+) -> tuple[tuple[float, float], str]:
+    """The reference's and the student's Froude numbers from their ``speeds`` (m/s) and
+    ``legs_m``, and the sentence saying that one walks and the other runs ("" otherwise)."""
+    froudes = (froude_number(speeds[0], legs_m[0]), froude_number(speeds[1], legs_m[1]))
+    gaits = [_gait(f, s) for f in froudes]
+    if set(gaits) != {"walk", "run"}:
+        return froudes, ""
+    said = [
+        f"{who} at {v:.1f} m/s (Froude number {f:.2f} for a {leg:.2f} m leg: "
+        f"{'a walk' if gait == 'walk' else 'a run'})"
+        for who, v, f, leg, gait in zip(
+            ("the reference", "the student"), speeds, froudes, legs_m, gaits, strict=True
+        )
+    ]
+    return froudes, (
+        f"{said[1]} but {said[0]}: people walk below {s.walking_froude:g} and run from "
+        f"{s.running_froude:g}"
+    )
 
 
 def check_movement(
@@ -391,25 +415,8 @@ def check_movement(
         reference_s = float(c[-k:].double().mean() - c[:k].double().mean()) / reference_rate
         if reference_s > 0:
             speeds = (ref / scale / reference_s, student / ((n - k) / video_rate))
-            froudes = (_froude(speeds[0], legs_m[0]), _froude(speeds[1], legs_m[1]))
-            gaits = [_gait(f, s) for f in froudes]
-            if set(gaits) == {"walk", "run"}:
-                said = [
-                    f"{who} at {v:.1f} m/s (Froude number {f:.2f} for a {leg:.2f} m leg: "
-                    f"{'a walk' if gait == 'walk' else 'a run'})"
-                    for who, v, f, leg, gait in zip(
-                        ("the reference", "the student"),
-                        speeds,
-                        froudes,
-                        legs_m,
-                        gaits,
-                        strict=True,
-                    )
-                ]
-                reasons.append(
-                    f"{said[1]} but {said[0]}: people walk below {s.walking_froude:g} and run "
-                    f"from {s.running_froude:g}"
-                )
+            froudes, reason = _compare_gaits(speeds, legs_m, s)
+            reasons += [reason] if reason else []
     return MovementCheck(
         motions_match=not reasons,
         reasons=reasons,
