@@ -27,6 +27,7 @@ from torch import Tensor
 __all__ = [
     "MAX_SCALE",
     "VideoError",
+    "clean_foreground",
     "distance_to_edges",
     "edges",
     "foreground_masks",
@@ -338,6 +339,7 @@ def foreground_masks(
     """
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"frames must be (F, H, W, 3) uint8; got {frames.shape} {frames.dtype}")
+    shadow = None
     if method == "mog2":
         sub = cv2.createBackgroundSubtractorMOG2(
             history=history, varThreshold=threshold, detectShadows=True
@@ -348,22 +350,57 @@ def foreground_masks(
         background = np.median(frames, axis=0).astype(np.uint8)
         for _ in range(min(history, 30)):
             sub.apply(background, learningRate=1.0 / min(history, 30))
-        raw = np.stack([sub.apply(f, learningRate=1.0 / history) == 255 for f in frames])
+        labels = np.stack([sub.apply(f, learningRate=1.0 / history) for f in frames])
+        raw, shadow = labels == MOG2_FOREGROUND, labels == MOG2_SHADOW
     elif method == "median":
         background = np.median(frames, axis=0).astype(np.int16)
         raw = np.abs(frames.astype(np.int16) - background).max(-1) > threshold
     else:
         raise ValueError(f"method must be 'mog2' or 'median'; got {method!r}")
-    out = np.empty_like(raw)
+    return clean_foreground(raw, shadow, open_radius, close_radius)
+
+
+#: the labels of OpenCV's MOG2 with shadow detection: foreground, shadow (0: background)
+MOG2_FOREGROUND, MOG2_SHADOW = 255, 127
+
+
+def clean_foreground(
+    raw: np.ndarray, shadow: np.ndarray | None, open_radius: int, close_radius: int
+) -> np.ndarray:
+    """Foreground masks cleaned up: ``raw`` ``(F, H, W)`` bool opened by ``open_radius`` and
+    closed by ``close_radius`` pixels (0 skips either), then the pixels of ``shadow`` (same
+    shape; ``None``: none) that the result encloses added to it.
+
+    MOG2 calls a pixel shadow when it is a darker copy of the background's colour, which a
+    grey shirt before a light wall is as much as a shadow on the floor. A shadow cast by the
+    person lies on the ground beside them, reachable from the image's border without
+    crossing the person; a "shadow" the person's mask closes around (a hole in the torso) is
+    the person. So enclosed shadow pixels are foreground; enclosed pixels that look like the
+    background itself (the gap of an arm held akimbo) stay background. Returns ``(F, H, W)``
+    bool."""
     k_open = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * open_radius + 1,) * 2)
     k_close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * close_radius + 1,) * 2)
+    out = np.empty(raw.shape, dtype=bool)
     for i, m in enumerate(raw.astype(np.uint8)):
         if open_radius:
             m = cv2.morphologyEx(m, cv2.MORPH_OPEN, k_open)
         if close_radius:
             m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, k_close)
         out[i] = m > 0
+        if shadow is not None and shadow[i].any():
+            out[i] |= shadow[i] & ~_outside(out[i])
     return out
+
+
+def _outside(mask: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: the pixels off ``mask`` that the image's border reaches without
+    crossing it (4-connected)."""
+    count, comp = cv2.connectedComponents((~mask).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([comp[0], comp[-1], comp[:, 0], comp[:, -1]]))
+    reached = np.zeros(count, dtype=bool)
+    reached[border] = True
+    reached[0] = False  # label 0: the mask's own pixels
+    return reached[comp]
 
 
 def select_person(

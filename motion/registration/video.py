@@ -33,7 +33,10 @@ import torch
 from motion.body.observation import Observation
 from motion.cameras import CameraRig, resized_rig
 from motion.features import (
+    MOG2_FOREGROUND,
+    MOG2_SHADOW,
     VideoError,
+    clean_foreground,
     distance_to_edges,
     edges,
     foreground_masks,
@@ -487,17 +490,12 @@ def _foreground(frames: np.ndarray, background: np.ndarray, settings: VideoSetti
         # not learnt as background (MOG2 counts a mode as background once the modes before it
         # hold less than 90 % of the weight: ~0.1 / rate frames)
         rate = min(1.0 / history, 0.05 / max(len(frames), 1))
-        raw = np.stack([sub.apply(f, learningRate=rate) == 255 for f in frames])
-    else:
-        diff = np.abs(frames.astype(np.int16) - background.astype(np.int16)).max(-1)
-        raw = diff > settings.threshold
-    k_open = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _OPEN_PX + 1,) * 2)
-    k_close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _CLOSE_PX + 1,) * 2)
-    out = np.empty(raw.shape, dtype=bool)
-    for i, m in enumerate(raw.astype(np.uint8)):
-        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, k_open)
-        out[i] = cv2.morphologyEx(m, cv2.MORPH_CLOSE, k_close) > 0
-    return out
+        labels = np.stack([sub.apply(f, learningRate=rate) for f in frames])
+        return clean_foreground(
+            labels == MOG2_FOREGROUND, labels == MOG2_SHADOW, _OPEN_PX, _CLOSE_PX
+        )
+    diff = np.abs(frames.astype(np.int16) - background.astype(np.int16)).max(-1)
+    return clean_foreground(diff > settings.threshold, None, _OPEN_PX, _CLOSE_PX)
 
 
 def _check_backgrounds(settings: VideoSettings, paths: list[Path], probes: list[_Probe]):

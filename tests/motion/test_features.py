@@ -9,6 +9,7 @@ from scipy.ndimage import distance_transform_edt
 
 from motion.features import (
     VideoError,
+    clean_foreground,
     distance_to_edges,
     edges,
     foreground_masks,
@@ -80,6 +81,48 @@ def test_foreground_masks_recover_a_moving_person(method):
     masks = foreground_masks(clip, method=method, threshold=30 if method == "median" else 25)
     iou = (masks & truth).sum((1, 2)) / (masks | truth).sum((1, 2))
     assert np.median(iou) > 0.85, np.median(iou)
+
+
+def test_shadow_the_foreground_encloses_is_foreground_and_the_rest_is_not():
+    """A ring of foreground around shadow pixels (a grey shirt inside arms and shoulders):
+    filled. Background pixels inside it (an arm's gap): kept out. Shadow reaching the
+    border (cast on the floor) and shadow inside a ring with a gap: kept out."""
+    raw = np.zeros((1, 40, 60), dtype=bool)
+    shadow = np.zeros_like(raw)
+    raw[0, 5:25, 5:25] = True
+    raw[0, 9:21, 9:21] = False  # the ring's inside ...
+    shadow[0, 9:21, 9:15] = True  # ... half shadow, half background
+    shadow[0, 30:40, 0:20] = True  # on the floor, reaching the border
+    raw[0, 5:25, 35:55] = True
+    raw[0, 9:21, 39:51] = False
+    raw[0, 5:9, 44:46] = False  # a gap in the second ring
+    shadow[0, 9:21, 39:51] = True
+    out = clean_foreground(raw, shadow, 0, 0)
+    assert out[0, 9:21, 9:15].all() and not out[0, 9:21, 15:21].any()
+    assert not out[0, 30:40, 0:20].any() and not out[0, 9:21, 39:51].any()
+    assert (out & ~raw).sum() == 12 * 6  # nothing else added
+    assert (clean_foreground(raw, None, 0, 0) == raw).all()
+
+
+def test_mog2_counts_a_shirt_darker_than_the_wall_and_not_a_cast_shadow():
+    """MOG2 calls a darker copy of the background's colour shadow: a grey shirt (0.7 of a
+    light wall) framed by a red head, arms and legs is the person all the same, while the
+    person's shadow on the floor (the wall at 0.7, reaching the image's bottom) is not. The
+    person walks 3 px a frame, so MOG2's slow learning never takes the red for the wall."""
+    rng = np.random.default_rng(3)
+    wall = np.array([200, 200, 190], dtype=np.int16)
+    clip = []
+    for f in range(20):
+        img = wall + rng.integers(-2, 3, (70, 110, 3))
+        x = 5 + 3 * f
+        img[8:50, x : x + 26] = (220, 40, 40)  # head, arms, legs: the frame of the shirt
+        img[16:38, x + 6 : x + 20] = (0.7 * wall).astype(np.int16)  # wider than a closing
+        img[58:70, x + 26 : x + 40] = (0.7 * wall).astype(np.int16)  # cast on the floor
+        clip.append(img.clip(0, 255).astype(np.uint8))
+    last = foreground_masks(np.stack(clip), method="mog2", threshold=25)[-1]
+    x = 5 + 3 * 19
+    assert last[16:38, x + 6 : x + 20].mean() > 0.95
+    assert last[60:70, x + 28 : x + 38].mean() < 0.05
 
 
 def test_select_person_largest_and_nearest():
