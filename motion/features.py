@@ -328,7 +328,7 @@ def foreground_masks(
     Args:
         frames: ``(F, H, W, 3)`` uint8.
         method: ``"mog2"`` (OpenCV's adaptive Gaussian mixture, shadows counted as
-            background) or ``"median"`` (per-pixel temporal median as the background, a
+            background except where the person encloses them: :func:`clean_foreground`) or ``"median"`` (per-pixel temporal median as the background, a
             pixel is foreground when its largest channel difference exceeds ``threshold``).
         threshold: MOG2's variance threshold, or the median method's grey-level difference.
         history: MOG2's history length (frames).

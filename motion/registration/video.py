@@ -103,7 +103,8 @@ class VideoSettings(Settings):
         "mog2",
         "background subtraction against the median of background_frames: mog2 (OpenCV's "
         "Gaussian mixture started from that median, adapting slowly; shadows count as "
-        "background) or median (largest channel difference from it)",
+        "background, except those the person's mask encloses: motion.features."
+        "clean_foreground) or median (largest channel difference from it)",
         choices=("mog2", "median"),
     )
     background_frames: int = setting(
