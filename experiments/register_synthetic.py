@@ -78,6 +78,7 @@ from motion.registration.movement import (
     check_movement,
     froude_number,
     leg_length_m,
+    net_displacement_m,
 )
 from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
@@ -579,9 +580,7 @@ def _true_froude(owner: Reference, truth: Truth, rate: float) -> float:
     k = max(1, min(round(MovementSettings().end_window_s * rate), n // 2))
     if n - k <= 0:
         return math.nan
-    speed = float((truth.position[-k:].mean(0) - truth.position[:k].mean(0)).norm()) / (
-        (n - k) / rate
-    )
+    speed = net_displacement_m(truth.position, k) / ((n - k) / rate)
     segments = SegmentMap.from_roles(owner.skeleton, owner.model.mapping)
     leg = leg_length_m(owner.skeleton, owner.skeleton.offsets, segments)
     return froude_number(speed, leg)

@@ -78,6 +78,7 @@ __all__ = [
     "froude_number",
     "held_ends",
     "leg_length_m",
+    "net_displacement_m",
 ]
 
 #: m/s^2, for the Froude number
@@ -271,7 +272,7 @@ def _held_warnings(start: int, end: int, video_rate: float, c: Tensor, least_s: 
     return out
 
 
-def _net_displacement(positions: Tensor, k: int) -> float:
+def net_displacement_m(positions: Tensor, k: int) -> float:
     """Metres between the mean of the first ``k`` and of the last ``k`` of ``(F, 3)``."""
     k = max(1, min(k, positions.shape[0] // 2 or 1))
     return float((positions[-k:].mean(0) - positions[:k].mean(0)).norm())
@@ -370,8 +371,8 @@ def check_movement(
     slope = float(np.polyfit(np.arange(n, dtype=np.float64), c.numpy().astype(np.float64), 1)[0])
     speed = slope * video_rate / reference_rate
     k = max(1, round(s.end_window_s * video_rate))
-    student = _net_displacement(translation.detach().cpu().double(), k)
-    ref = _net_displacement(reference_root.detach().cpu().double()[c], k) * scale
+    student = net_displacement_m(translation.detach().cpu().double(), k)
+    ref = net_displacement_m(reference_root.detach().cpu().double()[c], k) * scale
     reasons = []
     travelling = max(student, ref) >= s.travelling_m
     apart = abs(student - ref) > s.min_travel_difference_m

@@ -90,6 +90,20 @@ def _without_joints(scene: Scene):
     return dataclasses.replace(scene.video, observation=obs, keypoint_joints=None)
 
 
+def _polish_from_truth(scene: Scene, settings=None, video=None, reference=None):
+    """The polish started at the scene's true C, T and A (G 1), on ``video`` and
+    ``reference`` (default: the scene's)."""
+    return polish_posture(
+        scene.reference if reference is None else reference,
+        scene.video if video is None else video,
+        scene.C,
+        scene.rotations,
+        scene.translation,
+        1.0,
+        *([] if settings is None else [settings]),
+    )
+
+
 def _perturbed(scene: Scene, degrees: float, shift_m: float):
     """The truth with every driven joint turned by ``degrees`` about a random axis and the
     root moved by ``shift_m``."""
@@ -112,9 +126,7 @@ def test_the_posture_reproduces_the_renderers_joints(scene):
 
 
 def test_started_at_the_truth_the_polish_stays(scene):
-    out = polish_posture(
-        scene.reference, scene.video, scene.C, scene.rotations, scene.translation, 1.0
-    )
+    out = _polish_from_truth(scene)
     assert _e3d(scene, out.rotations, out.translation) < 0.004
     assert out.loss_end <= out.loss_start + 1e-6
 
@@ -350,15 +362,7 @@ def test_a_students_other_proportions_are_recovered(large_scene, tmp_path_factor
 
 def test_without_2d_joints_the_proportions_are_not_measured(scene):
     video = _without_joints(scene)
-    out = polish_posture(
-        scene.reference,
-        video,
-        scene.C,
-        scene.rotations,
-        scene.translation,
-        1.0,
-        PosturePolishSettings(steps=1, proportion_steps=100),
-    )
+    out = _polish_from_truth(scene, PosturePolishSettings(steps=1, proportion_steps=100), video)
     assert not out.proportions.measured
     assert out.proportions.as_dict() == {n: 1.0 for n in scene.reference.spec.part_names}
 
@@ -377,15 +381,8 @@ def test_the_silhouettes_never_move_the_proportions(scene, tmp_path_factory):
     the prior: the silhouettes move the posture, not the part lengths (a coat lengthens no
     trunk), so every factor stays exactly 1, even against a reshaped reference."""
     reshaped = _reshaped_reference(tmp_path_factory)
-    out = polish_posture(
-        reshaped,
-        scene.video,
-        scene.C,
-        scene.rotations,
-        scene.translation,
-        1.0,
-        PosturePolishSettings(steps=0, keypoints=0.0, proportion_steps=20),
-    )
+    settings = PosturePolishSettings(steps=0, keypoints=0.0, proportion_steps=20)
+    out = _polish_from_truth(scene, settings, reference=reshaped)
     assert torch.equal(out.proportions.part_scales, torch.ones(reshaped.spec.num_parts).double())
 
 
@@ -398,19 +395,9 @@ def test_started_at_the_truth_the_silhouettes_alone_keep_it(scene):
     of the height off."""
     video = _without_joints(scene)
     s = PosturePolishSettings(steps=100, rasterised=True)
-    out = polish_posture(
-        scene.reference, video, scene.C, scene.rotations, scene.translation, 1.0, s
-    )
+    out = _polish_from_truth(scene, s, video)
     truth = _iou(scene, scene.rotations, scene.translation)
     assert _iou(scene, out.rotations, out.translation) > truth - 0.005
     assert _e3d(scene, out.rotations, out.translation) < 0.002
-    centres = polish_posture(
-        scene.reference,
-        video,
-        scene.C,
-        scene.rotations,
-        scene.translation,
-        1.0,
-        dataclasses.replace(s, rasterised=False),
-    )
+    centres = _polish_from_truth(scene, dataclasses.replace(s, rasterised=False), video)
     assert _iou(scene, centres.rotations, centres.translation) < truth - 0.02
