@@ -140,6 +140,11 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "(0, motion register's default: the reference's proportions; 100: fitted)",
         ge=0,
     )
+    device: str = setting(
+        "cpu",
+        "where the registration runs: cpu, cuda or cuda:N (the runner then holds a GPU for "
+        "the run; RegistrationSettings.device)",
+    )
     registration: dict[str, str] = setting(
         {},
         "any other setting of the registration by its dotted key, as `motion register` names "
@@ -364,6 +369,7 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         PosturePolishSettings(steps=cfg.polish_steps, proportion_steps=cfg.proportion_steps),
         scale=cfg.scale or None,
         seed=cfg.seed,
+        device=cfg.device,
     )
     for key, value in cfg.registration.items():  # a bad key or value: a ConfigError naming it
         settings = override(settings, key, parse_value(value), where="registration")

@@ -17,6 +17,10 @@ Robustness (:func:`robust_cost`): truncating or saturating the cost bounds what 
 stretch of video can cost, so it cannot pull the path off course elsewhere.
 
 Units: frames (integer indices, 0-based) for C; costs in the caller's units.
+
+Device: the dynamic programmes run on the CPU. A cost table on another device (a GPU's pair
+fits) is copied to the CPU first -- a ``T' x W`` table, small beside what made it, and the
+recursion is sequential in ``t'`` -- so C always comes back as a CPU tensor.
 """
 
 from __future__ import annotations
@@ -123,6 +127,7 @@ def _check_cost(cost: Tensor, name: str = "cost") -> Tensor:
         raise AlignmentError(f"{name} must be a floating-point tensor; got {cost.dtype}")
     if cost.shape[0] == 0 or cost.shape[1] == 0 or cost.shape[2] == 0:
         raise AlignmentError(f"{name} must be non-empty; got shape {tuple(cost.shape)}")
+    cost = cost.cpu()  # the DP runs on the host (see the module's docstring)
     total = cost.sum()  # one pass; only a NaN or an infinity somewhere needs a closer look
     if torch.isfinite(total):
         return cost
@@ -167,7 +172,7 @@ def robust_cost(cost: Tensor, threshold: float | None = None, mode: str = "trunc
     else:
         if not (threshold > 0 and math.isfinite(threshold)):
             raise AlignmentError(f"threshold must be a finite positive number; got {threshold}")
-        threshold_t = torch.as_tensor(threshold, dtype=cost.dtype)
+        threshold_t = torch.as_tensor(threshold, dtype=cost.dtype, device=cost.device)
     if mode == "truncate":
         return torch.minimum(cost, threshold_t)
     if mode == "saturate":
@@ -189,7 +194,7 @@ def slope_step_cost(max_step: int, slope: float, weight: float) -> Tensor:
         raise AlignmentError(f"slope must be a finite positive number; got {slope}")
     if weight < 0:
         raise AlignmentError(f"weight must be >= 0; got {weight}")
-    steps = torch.arange(max_step + 1, dtype=torch.get_default_dtype())
+    steps = torch.arange(max_step + 1, dtype=torch.get_default_dtype(), device="cpu")
     return weight * ((steps - slope) / slope) ** 2
 
 
@@ -227,7 +232,7 @@ def _step_factor(max_step: int | None, step_cost: Tensor | None) -> MonotoneFact
         return MonotoneFactor(max_step)
     if max_step is None:
         raise AlignmentError("step_cost needs a finite max_step")
-    step_cost = torch.as_tensor(step_cost, dtype=torch.get_default_dtype())
+    step_cost = torch.as_tensor(step_cost, dtype=torch.get_default_dtype(), device="cpu")
     if step_cost.shape != (max_step + 1,):
         raise AlignmentError(
             f"step_cost must have shape ({max_step + 1},) for max_step={max_step}; "
@@ -318,9 +323,11 @@ class TempoPrior:
         of ``0 .. S m`` grid units, one level per step (the tempo), each emitting its own
         step only."""
         m = self.subdivisions
-        tempo = torch.arange(max_step * m + 1, dtype=torch.float64) / m
+        tempo = torch.arange(max_step * m + 1, dtype=torch.float64, device="cpu") / m
         level_cost = self.slope_weight * ((tempo - self.slope) / self.slope) ** 2
-        emission = torch.full((len(tempo), len(tempo)), -math.inf, dtype=torch.float64)
+        emission = torch.full(
+            (len(tempo), len(tempo)), -math.inf, dtype=torch.float64, device="cpu"
+        )
         emission.diagonal().copy_(-level_cost)
         change = (tempo[:, None] - tempo[None, :]) / self.slope
         change = -(change**2) / (2 * self.change_std**2)
@@ -331,7 +338,7 @@ class TempoPrior:
 def _phase_costs(cost: Tensor, m: int) -> Tensor:
     """``(T', W)`` costs at reference frames -> ``(T', (W - 1) m + 1)`` at the phase grid:
     each phase costs what its rounded frame does (what C will be)."""
-    phase = torch.arange((cost.shape[1] - 1) * m + 1)
+    phase = torch.arange((cost.shape[1] - 1) * m + 1, device=cost.device)
     return cost[:, torch.div(phase + m // 2, m, rounding_mode="floor")]
 
 
@@ -371,7 +378,7 @@ def tempo_align(
         raise AlignmentError(f"cost must be one (T', W) table; got shape {tuple(cost.shape)}")
     cost = _check_cost(cost)[0]
     n, w = cost.shape
-    offsets = torch.as_tensor(offsets)
+    offsets = torch.as_tensor(offsets, device="cpu")
     if offsets.shape != (n,) or offsets.dtype.is_floating_point or (offsets.diff() < 0).any():
         raise AlignmentError(
             f"offsets must be ({n},) non-decreasing integers; got {tuple(offsets.shape)} "
@@ -518,7 +525,7 @@ def sequence_cost_fn(video: Tensor, reference: Tensor) -> CostFn:
 def _evaluate(cost_fn: CostFn, rows: Tensor, cols: Tensor, chunk_cells: int = 4_000_000) -> Tensor:
     """Call ``cost_fn`` on row chunks so that one call sees at most ``chunk_cells`` cells."""
     per = max(1, chunk_cells // max(cols.shape[1], 1))
-    parts = [cost_fn(rows[s : s + per], cols[s : s + per]) for s in range(0, len(rows), per)]
+    parts = [cost_fn(rows[s : s + per], cols[s : s + per]).cpu() for s in range(0, len(rows), per)]
     out = torch.cat(parts)
     if out.shape != cols.shape:
         raise AlignmentError(
@@ -758,8 +765,8 @@ class _Levels:
         compared with the cell's true minimum, on the cells holding a plausible match (true
         minimum below tau, at least 4 of them); the largest g whose mean excess is at most
         ``tolerance`` tau is taken (1 if none)."""
-        rows = torch.tensor(sorted({self.num_video // 4, 3 * self.num_video // 4}))
-        cols = torch.arange(self.num_ref).expand(len(rows), -1)
+        rows = torch.tensor(sorted({self.num_video // 4, 3 * self.num_video // 4}), device="cpu")
+        cols = torch.arange(self.num_ref, device="cpu").expand(len(rows), -1)
         raw = _evaluate(self.cost_fn, rows, cols).double()
         tau = threshold
         if tau is None:
@@ -822,7 +829,7 @@ class _Levels:
         ``pool_stride``)."""
         g = self.stride(scale)
         width = max(1, int((hi - lo).max()) + 1) if len(rows) else 1
-        out = torch.full((len(rows), width), math.inf, dtype=torch.float64)
+        out = torch.full((len(rows), width), math.inf, dtype=torch.float64, device="cpu")
         first = lo * scale
         last = torch.clamp((hi + 1) * scale, max=self.num_ref) - 1
         bucket = _bucket((last - first) // g + 1)  # reference frames evaluated per row
@@ -831,10 +838,10 @@ class _Levels:
         bucket[hi < lo] = 0
         for size in torch.unique(bucket[bucket > 0]).tolist():
             sel = (bucket == size).nonzero().flatten()
-            frames = first[sel, None] + g * torch.arange(size)
+            frames = first[sel, None] + g * torch.arange(size, device="cpu")
             frames = torch.minimum(frames, last[sel, None])  # padding repeats the last frame
             cost = _evaluate(self.cost_fn, rows[sel] * scale, frames).double()
-            pooled = torch.full((len(sel), width), math.inf, dtype=torch.float64)
+            pooled = torch.full((len(sel), width), math.inf, dtype=torch.float64, device="cpu")
             out[sel] = pooled.scatter_reduce_(1, frames // scale - lo[sel, None], cost, "amin")
         return out
 
@@ -1062,7 +1069,7 @@ class _Levels:
         ``known`` if given, and off fixed ends), the shaped costs and the threshold."""
         _check_cost(raw)
         cost, threshold = self.shape(raw, threshold)
-        cols = torch.arange(raw.shape[1])
+        cols = torch.arange(raw.shape[1], device="cpu")
         inside = cols <= (hi - lo)[:, None]
         if known is not None:
             inside = inside & known
@@ -1086,10 +1093,13 @@ class _Levels:
             n = -(-self.num_video // scale)
             m = -(-self.num_ref // scale)
             if coarse is None:
-                lo, hi = torch.zeros(n, dtype=torch.long), torch.full((n,), m - 1)
+                lo, hi = (
+                    torch.zeros(n, dtype=torch.long, device="cpu"),
+                    torch.full((n,), m - 1, device="cpu"),
+                )
             else:
                 lo, hi = self.band(n, m, coarse, keep_lo, keep_hi)
-            raw = self.evaluate(scale, torch.arange(n), lo, hi)
+            raw = self.evaluate(scale, torch.arange(n, device="cpu"), lo, hi)
             known = None
             if coarse is not None and self.beam > 0 and scale <= self.factor:
                 lo, hi, raw, known = self.track(scale, raw, lo, hi, m, threshold)

@@ -107,7 +107,7 @@ class Skeleton:
         levels = [[] for _ in range(max(depth) + 1)]
         for j, d in enumerate(depth):
             levels[d].append(j)
-        return [torch.tensor(lv, dtype=torch.long) for lv in levels]
+        return [torch.tensor(lv, dtype=torch.long, device=self.parents.device) for lv in levels]
 
     @classmethod
     def from_bvh(cls, bvh: BVH, metres_per_unit: float | None = None) -> Skeleton:
@@ -301,7 +301,7 @@ def offset_points(fk: FKResult, offsets: dict[int, Tensor], scale: float = 1.0) 
     (``(..., 0, 3)`` for no offsets). Differentiable in ``fk``."""
     if not offsets:
         return fk.positions[..., :0, :]
-    joints = torch.tensor(list(offsets), dtype=torch.long)
+    joints = torch.tensor(list(offsets), dtype=torch.long, device=fk.positions.device)
     offs = torch.stack(list(offsets.values())).to(fk.positions) * scale  # (n, 3)
     rot = fk.rotations[..., joints, :, :]
     return fk.positions[..., joints, :] + (rot @ offs.unsqueeze(-1)).squeeze(-1)

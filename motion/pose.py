@@ -557,11 +557,13 @@ def solve_pose(
         c_all[idx] = torch.where(take, cand.cost, c_all[idx])
         best = PoseResult(r_all, t_all, c_all, max(best.iterations, cand.iterations))
     if starts > 1:
-        g = generator or torch.Generator().manual_seed(0)
+        g = generator or torch.Generator(device=x2.device).manual_seed(0)
         axes = torch.nn.functional.normalize(
-            torch.randn(starts - 1, 3, generator=g, dtype=x2.dtype), dim=-1
+            torch.randn(starts - 1, 3, generator=g, dtype=x2.dtype, device=x2.device), dim=-1
         )
-        angles = torch.linspace(torch.pi / 2, torch.pi, starts - 1, dtype=x2.dtype)
+        angles = torch.linspace(
+            torch.pi / 2, torch.pi, starts - 1, dtype=x2.dtype, device=x2.device
+        )
         for rot in axis_angle_to_rotation_matrix(axes * angles[:, None]):
             # rotate about the body's centroid so the start stays in front of the camera
             centre = x3.mean(1)
@@ -615,15 +617,17 @@ def newton_pose(
         return state, problem.cost(state), problem.in_front(state, t_last)
 
     state, cost, _ = evaluate(r, t)
-    scales = torch.tensor([1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125], dtype=x2.dtype)
+    scales = [1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125]
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported
         g = torch.stack(problem.gradient(*problem.jacobian_rows(*state), *state[-2:]), -1)
-        h = hess_fn(torch.zeros(x2.shape[0], 6, dtype=x2.dtype), r, t, x3, x2, K)
+        h = hess_fn(x2.new_zeros(x2.shape[0], 6), r, t, x3, x2, K)
         h = 0.5 * (h + h.transpose(1, 2))
         low = torch.linalg.eigvalsh(h)[:, 0]
         shift = (1e-9 * h.diagonal(dim1=-2, dim2=-1).abs().amax(-1) - low).clamp_min(0)
-        step = _solve_spd(h + shift[:, None, None] * torch.eye(6, dtype=x2.dtype), -g)
+        step = _solve_spd(
+            h + shift[:, None, None] * torch.eye(6, dtype=x2.dtype, device=x2.device), -g
+        )
         best_cost, best_r, best_t = cost.clone(), r.clone(), t.clone()
         for a in scales:
             r_new = axis_angle_to_rotation_matrix(a * step[:, :3]) @ r
@@ -674,7 +678,7 @@ def solve_pose_views(
     dtype = points2d.dtype
     x3 = points3d.expand(b, n, 3)
     K, R_cam, t_cam = K.to(dtype), R_cam.to(dtype), t_cam.to(dtype)
-    w = torch.ones(b, c, n, dtype=dtype) if weights is None else weights.to(dtype)
+    w = points2d.new_ones(b, c, n) if weights is None else weights.to(dtype)
     sw = w.sqrt().unsqueeze(-1)  # (B, C, n, 1)
     single = solve_pose(x3, points2d[:, init_camera], K[init_camera])
     rc0, tc0 = R_cam[init_camera], t_cam[init_camera]
@@ -694,10 +698,10 @@ def solve_pose_views(
     r_out, t_out, cost_out = r.clone(), t.clone(), cost.clone()
     # Only problems that have not converged are iterated: most converge in two or three
     # steps, and a few stragglers would otherwise keep the whole batch for every iteration.
-    index = torch.arange(b)
+    index = torch.arange(b, device=points2d.device)
     seen = w > 0
     lam = torch.full_like(cost, 1e-3)
-    eye = torch.eye(6, dtype=dtype)
+    eye = torch.eye(6, dtype=dtype, device=points2d.device)
     fx, fy, skew = K[:, 0, 0][None, :, None], K[:, 1, 1][None, :, None], K[:, 0, 1][None, :, None]
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 -- the count is reported

@@ -164,7 +164,7 @@ def label_map(parts: ProjectedParts, height: int, width: int) -> tuple[Tensor, T
 
 def render_intensity(labels: Tensor, colours: Tensor, background: Tensor | float = 0.0) -> Tensor:
     """Colour a label map: ``(..., H, W)`` labels, ``(P, 3)`` colours in [0, 1] -> ``(..., 3, H, W)``."""
-    bg = torch.as_tensor(background, dtype=colours.dtype).expand(3)
+    bg = torch.as_tensor(background, dtype=colours.dtype, device=colours.device).expand(3)
     table = torch.cat([bg[None], colours], 0)  # index 0 = background
     img = table[(labels + 1).clamp_min(0)]
     return img.movedim(-1, -3)

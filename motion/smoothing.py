@@ -23,13 +23,14 @@ __all__ = ["gaussian_kernel", "smooth_rotations", "smooth_values"]
 TRUNCATE_SIGMAS = 3.0
 
 
-def gaussian_kernel(sigma: float, dtype=torch.float64) -> Tensor:
+def gaussian_kernel(sigma: float, dtype=torch.float64, device=None) -> Tensor:
     """``(2 r + 1,)`` weights ``exp(-k^2 / (2 sigma^2))`` for ``k = -r .. r``,
-    ``r = ceil(3 sigma)``, not normalised (the ends renormalise)."""
+    ``r = ceil(3 sigma)``, not normalised (the ends renormalise); on ``device`` (``None``:
+    the CPU)."""
     if not (sigma > 0 and math.isfinite(sigma)):
         raise ValueError(f"sigma must be a finite number > 0 (frames); got {sigma}")
     radius = math.ceil(TRUNCATE_SIGMAS * sigma)
-    k = torch.arange(-radius, radius + 1, dtype=dtype)
+    k = torch.arange(-radius, radius + 1, dtype=dtype, device=device or "cpu")
     return torch.exp(-0.5 * (k / sigma) ** 2)
 
 
@@ -41,12 +42,12 @@ def smooth_values(values: Tensor, sigma: float) -> Tensor:
     sequence (the weights renormalised at the ends)."""
     if sigma == 0 or values.shape[0] == 0:
         return values.clone()
-    kernel = gaussian_kernel(sigma, values.dtype)
+    kernel = gaussian_kernel(sigma, values.dtype, values.device)
     radius = (len(kernel) - 1) // 2
     flat = values.reshape(values.shape[0], -1).T.unsqueeze(1)  # (M, 1, T)
     weight = kernel.view(1, 1, -1)
     summed = torch.nn.functional.conv1d(flat, weight, padding=radius)
-    ones = torch.ones(1, 1, values.shape[0], dtype=values.dtype)
+    ones = torch.ones(1, 1, values.shape[0], dtype=values.dtype, device=values.device)
     total = torch.nn.functional.conv1d(ones, weight, padding=radius)
     return (summed / total).squeeze(1).T.reshape(values.shape)
 
@@ -64,6 +65,6 @@ def smooth_rotations(rotations: Tensor, sigma: float) -> Tensor:
         return rotations.clone()
     mean = smooth_values(rotations, sigma)
     u, _, vh = torch.linalg.svd(mean)
-    fix = torch.ones(*mean.shape[:-1], dtype=mean.dtype)
+    fix = torch.ones(*mean.shape[:-1], dtype=mean.dtype, device=mean.device)
     fix[..., 2] = torch.det(u @ vh)
     return u @ torch.diag_embed(fix) @ vh

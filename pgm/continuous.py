@@ -216,7 +216,8 @@ class RigidConnection(ContinuousPairwise):
         dt = torch.get_default_dtype()
         self.offset_a = torch.as_tensor(offset_a, dtype=dt)
         self.offset_b = torch.as_tensor(offset_b, dtype=dt)
-        self.rel_rot = torch.as_tensor([1.0, 0, 0, 0] if rel_rot is None else rel_rot, dtype=dt)
+        identity = torch.tensor([1.0, 0, 0, 0], dtype=dt, device=self.offset_a.device)
+        self.rel_rot = identity if rel_rot is None else torch.as_tensor(rel_rot, dtype=dt)
         for name, t, w in (
             ("offset_a", self.offset_a, 3),
             ("offset_b", self.offset_b, 3),
@@ -292,7 +293,7 @@ class RigidConnection(ContinuousPairwise):
         s_p, s_r = self._spreads()
         bound = -3 * math.log(s_p) - 1.5 * _LOG_2PI  # the position Gaussian's peak
         if s_r is not None:  # and the rotation kernel's (at zero angle)
-            one = torch.ones((), dtype=torch.float64)
+            one = torch.ones((), dtype=torch.float64, device="cpu")
             peak = float(rotation_log_kernel_from_dot(one.clone(), s_r, self.rotation))
             if self.outlier:  # both components peak at zero angle
                 wide = float(

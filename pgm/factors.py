@@ -749,9 +749,12 @@ class BandedMonotoneFactor(PairwiseFactor):
         self.offsets = offsets.long()
         self.num_edges = offsets.shape[0] - 1
         if step_log_potential is None:
-            step_log_potential = torch.zeros(max_step + 1, dtype=torch.get_default_dtype())
+            step_log_potential = torch.zeros(
+                max_step + 1, dtype=torch.get_default_dtype(), device=offsets.device
+            )
         _check_step_log_potential(step_log_potential, max_step)
-        self.step_log_potential = step_log_potential
+        # beside the offsets: the messages run on their device
+        self.step_log_potential = step_log_potential.to(offsets.device)
 
     def viterbi(self, unary: Tensor, overwrite: bool = False) -> tuple[Tensor, Tensor] | None:
         """Fused chain Viterbi over the band, in NumPy on the CPU (windows are short, so
@@ -769,7 +772,7 @@ class BandedMonotoneFactor(PairwiseFactor):
         shifts = (self.offsets[1:] - self.offsets[:-1]).tolist()
         alpha = unary.detach().numpy() if overwrite else unary.detach().numpy().copy()
         alpha = alpha.astype(np.float64, copy=False)
-        step_lp = self.step_log_potential.double().numpy()
+        step_lp = self.step_log_potential.double().cpu().numpy()
         # window index k reads the source S - k positions back: a step of S - k
         window_lp = step_lp[::-1].copy()
         plain = not step_lp.any()
@@ -805,12 +808,12 @@ class BandedMonotoneFactor(PairwiseFactor):
         return torch.from_numpy(score).to(unary.dtype), torch.from_numpy(states)
 
     def _shift(self, edges: EdgeIndex) -> Tensor:
-        n = torch.arange(self.num_edges)[edges]
+        n = torch.arange(self.num_edges, device=self.offsets.device)[edges]
         return self.offsets[n + 1] - self.offsets[n]  # (E,)
 
     def log_potential(self, edges, xa, xb, num_states):
         d = self._shift(edges)  # pos_b - pos_a = d + j - i
-        i = torch.arange(num_states)
+        i = torch.arange(num_states, device=d.device)
         step = d[:, None, None] + i[None, None, :] - i[None, :, None]
         allowed = (step >= 0) & (step <= self.max_step)
         lp = self.step_log_potential[step.clamp(0, self.max_step)]
@@ -823,8 +826,8 @@ class BandedMonotoneFactor(PairwiseFactor):
         cache = self.__dict__.setdefault("_index_cache", {})
         if (width, forward) not in cache:
             d = self._shift(slice(None))[:, None, None]
-            i = torch.arange(width)[None, :, None]
-            s = torch.arange(self.max_step + 1)[None, None, :]
+            i = torch.arange(width, device=d.device)[None, :, None]
+            s = torch.arange(self.max_step + 1, device=d.device)[None, None, :]
             # forward: target j collects source i = j + d - s; backward: target i collects
             # j = i - d + s
             src = i + d - s if forward else i - d + s
@@ -845,7 +848,7 @@ class BandedMonotoneFactor(PairwiseFactor):
 
     def source_given_target(self, target_state, edges, forward, num_states, xa=None, xb=None):
         d = self._shift(edges)[None, :, None]
-        i = torch.arange(num_states)[None, None, :]
+        i = torch.arange(num_states, device=d.device)[None, None, :]
         t = target_state.unsqueeze(-1)
         step = t + d - i if forward else i + d - t
         allowed = (step >= 0) & (step <= self.max_step)
@@ -854,7 +857,7 @@ class BandedMonotoneFactor(PairwiseFactor):
 
     def backtrack(self, h, target_state, edges, forward, xa=None, xb=None):
         d = self._shift(edges)[None, :, None]
-        s = torch.arange(self.max_step + 1)[None, None, :]
+        s = torch.arange(self.max_step + 1, device=d.device)[None, None, :]
         t = target_state.unsqueeze(-1)
         cand = t + d - s if forward else t - d + s
         w = h.shape[-1]
@@ -940,14 +943,15 @@ class BandedTempoFactor(PairwiseFactor):
     def _lifted(self, num_states: int) -> tuple[Tensor, Tensor]:
         """Each state's position index and level ``(K,)``, ``-1`` on padding."""
         L, w = self.num_levels, self.width(num_states)
-        pos = torch.full((num_states,), -1, dtype=torch.long)
-        level = torch.full((num_states,), -1, dtype=torch.long)
-        pos[: w * L] = torch.arange(w).repeat_interleave(L)
-        level[: w * L] = torch.arange(L).repeat(w)
+        dev = self.offsets.device
+        pos = torch.full((num_states,), -1, dtype=torch.long, device=dev)
+        level = torch.full((num_states,), -1, dtype=torch.long, device=dev)
+        pos[: w * L] = torch.arange(w, device=dev).repeat_interleave(L)
+        level[: w * L] = torch.arange(L, device=dev).repeat(w)
         return pos, level
 
     def _shift(self, edges: EdgeIndex) -> Tensor:
-        n = torch.arange(self.num_edges)[edges]
+        n = torch.arange(self.num_edges, device=self.offsets.device)[edges]
         return self.offsets[n + 1] - self.offsets[n]  # (E,)
 
     def _pair(self, step: Tensor, new: Tensor, old: Tensor, real: Tensor) -> Tensor:
@@ -972,7 +976,9 @@ class BandedTempoFactor(PairwiseFactor):
         b, e, w, L = grid.shape
         r = src.shape[-1]
         valid = (src >= 0) & (src < w)
-        flat = src.clamp(0, w - 1) * L + torch.arange(L)[:, None]  # index into (W L)
+        flat = (
+            src.clamp(0, w - 1) * L + torch.arange(L, device=src.device)[:, None]
+        )  # index into (W L)
         vals = grid.reshape(b, e, w * L).gather(2, flat.reshape(1, e, -1).expand(b, e, -1))
         return vals.reshape(b, e, w, L, r), valid
 
@@ -981,11 +987,12 @@ class BandedTempoFactor(PairwiseFactor):
         L, w = self.num_levels, self.width(k)
         grid = h[..., : w * L].reshape(b, e, w, L)
         d = self._shift(edges)[:, None, None, None]  # (E, 1, 1, 1)
-        pos, steps = torch.arange(w)[None, :, None, None], self._steps[None, None]  # (.., L, R)
+        pos = torch.arange(w, device=h.device)[None, :, None, None]
+        steps = self._steps[None, None]  # (.., L, R)
         change = semiring.from_log(self.change_log_potential.to(h.dtype))  # [l', l]
         emit = self.emission_log_potential.gather(1, self._steps)  # (L, R)
         emit = semiring.from_log(emit.to(h.dtype))
-        zero = torch.full((), semiring.zero, dtype=h.dtype)
+        zero = torch.full((), semiring.zero, dtype=h.dtype, device=h.device)
         if forward:
             # each source position's levels moved to the new level, then the step emitted
             moved = semiring.sum(semiring.mul(grid[..., None, :], change), dim=-1)  # [i, l']

@@ -89,7 +89,7 @@ def pairwise_groups(
         if not (isinstance(item, tuple | list) and len(item) == 2):
             raise GraphError(f"pairwise[{gi}] must be a pair (edges, factor); got {item!r}")
         edges, factor = item
-        edges = torch.as_tensor(edges)
+        edges = torch.as_tensor(edges, device="cpu")
         if edges.dim() != 2 or edges.shape[1] != 2 or edges.dtype.is_floating_point:
             raise GraphError(
                 f"pairwise[{gi}] edges must be an integer tensor of shape (E, 2); "
@@ -230,8 +230,8 @@ def concatenated_edges(groups: Sequence[PairwiseGroup]) -> tuple[Tensor, Tensor,
         empty = torch.zeros(0, dtype=torch.long)
         return torch.zeros(0, 2, dtype=torch.long), empty, empty
     edges = torch.cat([g.edges for g in groups])
-    gid = torch.cat([torch.full((len(g.edges),), i) for i, g in enumerate(groups)])
-    lid = torch.cat([torch.arange(len(g.edges)) for g in groups])
+    gid = torch.cat([torch.full((len(g.edges),), i, device="cpu") for i, g in enumerate(groups)])
+    lid = torch.cat([torch.arange(len(g.edges), device="cpu") for g in groups])
     return edges, gid, lid
 
 

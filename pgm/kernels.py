@@ -79,6 +79,14 @@ def so3_log_kernel_from_dot(dot: Tensor, std: Tensor | float) -> Tensor:
     return _so3_log_kernel_half(torch.acos_(dot.abs().clamp_(max=1.0)), std)
 
 
+def _float64(x) -> Tensor:
+    """A spread as a float64 tensor: a tensor stays on its device, a number is a host
+    constant."""
+    if isinstance(x, Tensor):
+        return x.to(torch.float64)
+    return torch.tensor(x, dtype=torch.float64, device="cpu")
+
+
 def bingham_log_normaliser(std) -> Tensor:
     """``log c`` of :func:`rotation_noise`'s ``"bingham"`` kernel (float64 for any input):
     ``c = int_{S^3} exp(-kappa (1 - d^2)) dS = 2 pi^2 (i0e(kappa/2) - i1e(kappa/2))`` with
@@ -86,7 +94,7 @@ def bingham_log_normaliser(std) -> Tensor:
     the exponentially scaled Bessel functions keep large ``kappa`` finite), plus ``log 4``:
     the density is taken w.r.t. the measure of :func:`so3_log_kernel`, ``dR = 8 dS``, and the
     sphere covers each rotation twice."""
-    half = 1.0 / torch.as_tensor(std, dtype=torch.float64).square()  # kappa / 2
+    half = 1.0 / _float64(std).square()  # kappa / 2
     c = 2 * math.pi**2 * (torch.special.i0e(half) - torch.special.i1e(half))
     return torch.log(c) + math.log(4.0)
 
@@ -97,7 +105,7 @@ def bingham_log_kernel_from_dot(dot: Tensor, std) -> Tensor:
     ``kappa = 2 / std^2`` -- near the centre the Gaussian of rotation vectors of per-axis
     ``std`` (``1 - d^2 = sin^2(a / 2) ~ a^2 / 4``), exactly normalised on the whole
     sphere (:func:`bingham_log_normaliser`). Two passes over ``dot``, which it overwrites."""
-    kappa = 2.0 / torch.as_tensor(std, dtype=torch.float64).square()
+    kappa = 2.0 / _float64(std).square()
     const = (kappa + bingham_log_normaliser(std)).to(dot.dtype)
     return dot.square_().mul_(kappa.to(dot.dtype)).sub_(const)
 
@@ -118,13 +126,15 @@ def _bingham_envelope(kappa: float) -> tuple[float, float, float, float, float]:
     float64; at ``t0 = 0`` there is no head), the head's ``B`` (0 without one), the point
     ``t*`` where ``t^(1/2) exp(-kappa t)`` peaks on [t0, 1], the head's share of the mass and
     the acceptance rate ``mass(f) / mass(g)``, ``mass(f) = (pi/2) (i0e(kappa/2) - i1e(kappa/2))``."""
-    t0 = torch.cat([torch.zeros(1), torch.logspace(-9, math.log10(0.995), 4000)]).double()
+    t0 = torch.cat(
+        [torch.zeros(1, device="cpu"), torch.logspace(-9, math.log10(0.995), 4000, device="cpu")]
+    ).double()
     scale = torch.where(t0 > 0, (1.0 - t0).rsqrt(), 0.0)
     head = scale * (0.5 * math.sqrt(math.pi) * kappa**-1.5)
     t_star = torch.clamp(torch.full_like(t0, 0.5 / kappa), max=1.0).maximum(t0)
     tail = 2.0 * t_star.sqrt() * torch.exp(-kappa * t_star) * (1.0 - t0).sqrt()
     i = int(torch.argmin(head + tail))
-    half = torch.tensor(0.5 * kappa, dtype=torch.float64)
+    half = torch.tensor(0.5 * kappa, dtype=torch.float64, device="cpu")
     mass_f = 0.5 * math.pi * float(torch.special.i0e(half) - torch.special.i1e(half))
     total = float(head[i] + tail[i])
     return float(t0[i]), float(scale[i]), float(t_star[i]), float(head[i]) / total, mass_f / total

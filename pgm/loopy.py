@@ -77,16 +77,16 @@ def _incoming_table(graph: FactorGraph) -> tuple[Tensor, Tensor]:
     e = edges.shape[0]
     v = graph.num_nodes
     targets = torch.cat([edges[:, 1], edges[:, 0]])  # message d goes into targets[d]
-    ids = torch.arange(2 * e)
+    ids = torch.arange(2 * e, device="cpu")
     counts = torch.bincount(targets, minlength=v)
     first = counts.cumsum(0) - counts  # where each node's run starts in target order
     order = torch.sort(targets, stable=True).indices  # by target, then by id
     slot = torch.empty_like(ids)
     slot[order] = ids - first[targets[order]]
     width = max(1, int(counts.max()))
-    incoming = torch.full((v, width), 2 * e, dtype=torch.long)
+    incoming = torch.full((v, width), 2 * e, dtype=torch.long, device="cpu")
     incoming[targets, slot] = ids
-    reverse = torch.cat([torch.arange(e, 2 * e), torch.arange(0, e)])
+    reverse = torch.cat([torch.arange(e, 2 * e, device="cpu"), torch.arange(0, e, device="cpu")])
     return incoming, slot[reverse]
 
 
@@ -107,14 +107,16 @@ def _wiring(graph: FactorGraph, device: torch.device) -> _Wiring:
     done = 0
     for nodes, width in _degree_blocks(degree):
         blocks.append((incoming[nodes, :width].flatten().to(device), width))
-        first_slot[nodes] = done + width * torch.arange(len(nodes))
+        first_slot[nodes] = done + width * torch.arange(len(nodes), device="cpu")
         done += width * len(nodes)
     return _Wiring(
         incoming=incoming.to(device),
         sources=sources.to(device),
         targets=torch.cat([edges[:, 1], edges[:, 0]]).to(device),
         reverse_slot=reverse_slot.to(device),
-        reverse=torch.cat([torch.arange(e, 2 * e), torch.arange(0, e)]).to(device),
+        reverse=torch.cat(
+            [torch.arange(e, 2 * e, device=device), torch.arange(0, e, device=device)]
+        ),
         degree=degree.to(device),
         blocks=tuple(blocks),
         source_slot=(first_slot[sources] + reverse_slot).to(device),

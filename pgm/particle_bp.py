@@ -157,12 +157,12 @@ class ParticleGraph:
             raise GraphError(f"proposal must be one of {PROPOSALS}; got {proposal!r}")
         self.num_nodes = num_nodes
         self.proposal = proposal
-        owner = torch.full((num_nodes,), -1, dtype=torch.long)
+        owner = torch.full((num_nodes,), -1, dtype=torch.long, device="cpu")
         self.spaces: list[tuple[StateSpace, Tensor]] = []
         for gi, (space, nodes) in enumerate(spaces):
             if not isinstance(space, StateSpace):
                 raise GraphError(f"spaces[{gi}] must pair a StateSpace with nodes; got {space!r}")
-            nodes = torch.as_tensor(nodes, dtype=torch.long).reshape(-1)
+            nodes = torch.as_tensor(nodes, dtype=torch.long, device="cpu").reshape(-1)
             if nodes.numel() and (nodes.min() < 0 or nodes.max() >= num_nodes):
                 raise GraphError(f"spaces[{gi}] names nodes outside [0, {num_nodes})")
             if (owner[nodes] >= 0).any() or len(set(nodes.tolist())) != len(nodes):
@@ -177,7 +177,7 @@ class ParticleGraph:
         self.pairwise = [(g.edges, g.factor) for g in self.groups]
         self.unary = []
         for ui, (nodes, factor) in enumerate(unary):
-            nodes = torch.as_tensor(nodes, dtype=torch.long).reshape(-1)
+            nodes = torch.as_tensor(nodes, dtype=torch.long, device="cpu").reshape(-1)
             if nodes.numel() and (nodes.min() < 0 or nodes.max() >= num_nodes):
                 raise GraphError(f"unary[{ui}] names nodes outside [0, {num_nodes})")
             if not isinstance(factor, UnaryFactor):
@@ -187,7 +187,9 @@ class ParticleGraph:
             self.unary.append((nodes, factor))
         self.max_dim = max(space.dim for space, _ in self.spaces)
         self.discrete_states = max([s.num_states for s, _ in self.spaces if s.discrete] + [0])
-        self.continuous = torch.tensor([not self.spaces[g][0].discrete for g in owner.tolist()])
+        self.continuous = torch.tensor(
+            [not self.spaces[g][0].discrete for g in owner.tolist()], device="cpu"
+        )
         self._check_factor_places()
         if proposal == "mixture":
             check_samplable(self)
@@ -228,7 +230,11 @@ class ParticleGraph:
                 for t in dst.tolist():
                     count[t] += 1
                     slots.append(count[t])
-                out.append(_Directed(g, forward, src, dst, torch.tensor(slots, dtype=torch.long)))
+                out.append(
+                    _Directed(
+                        g, forward, src, dst, torch.tensor(slots, dtype=torch.long, device="cpu")
+                    )
+                )
         return out, max([*count, 0])
 
     def proposing_directions(self) -> list[_Directed]:
@@ -497,7 +503,7 @@ def _compile_proposal(
     """Mixture weights: component 0 is the node's own marginal (resampled and perturbed),
     components 1.. its neighbours' marginals pushed through the factors (``"mixture"``)."""
     _, max_in = graph.directed_edges()
-    weights = torch.zeros(graph.num_nodes, 1 + max_in, dtype=torch.float64)
+    weights = torch.zeros(graph.num_nodes, 1 + max_in, dtype=torch.float64, device="cpu")
     weights[:, 0] = 1.0
     pushed = graph.proposing_directions() if kind == "mixture" else []
     if pushed:
@@ -576,7 +582,9 @@ def _kernel_scales(graph: ParticleGraph, kernel_scale) -> dict[int, object]:
 
 
 def _scaled(scale, factor: float):
-    return torch.as_tensor(scale) * factor
+    if isinstance(scale, Tensor):
+        return scale * factor
+    return torch.as_tensor(scale, device="cpu") * factor  # numbers: a host constant
 
 
 # -- step 1: proposal --------------------------------------------------------------------------

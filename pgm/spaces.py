@@ -222,7 +222,7 @@ class Discrete(StateSpace):
 
     def support(self, dtype=torch.float32) -> Tensor:
         """``(n, 1)`` the states as values."""
-        return torch.arange(self.num_states, dtype=dtype).unsqueeze(-1)
+        return torch.arange(self.num_states, dtype=dtype, device="cpu").unsqueeze(-1)
 
     def perturb(self, x, scale, generator=None):
         return x

@@ -107,7 +107,7 @@ class SpatioTemporalTemplate:
         if not isinstance(num_frames, int) or num_frames < 1:
             raise ValueError(f"num_frames must be an int >= 1; got {num_frames!r}")
         p = self.num_parts
-        t = torch.arange(num_frames)
+        t = torch.arange(num_frames, device="cpu")
         groups: list[tuple[Tensor, PairwiseFactor]] = []
         for edges, factor in self.frame_pairwise:
             edges = torch.as_tensor(edges).long()
@@ -122,7 +122,7 @@ class SpatioTemporalTemplate:
             groups.append((tiled, factor))
         if self.temporal is not None and num_frames > 1:
             parts = (
-                torch.arange(p)
+                torch.arange(p, device="cpu")
                 if self.temporal_parts is None
                 else torch.as_tensor(self.temporal_parts).long()
             )

@@ -136,7 +136,7 @@ def fit_part_rotations(
     offsets = spec.offsets.to(dtype)
     fitted = est_rot.clone()
     eye = torch.eye(3, dtype=dtype, device=poses.device)
-    depth = torch.zeros(spec.num_parts, dtype=torch.long)
+    depth = torch.zeros(spec.num_parts, dtype=torch.long, device="cpu")
     for p in spec.topological_order().tolist()[1:]:
         depth[p] = depth[int(spec.parents[p])] + 1
     for level in range(int(depth.max()) + 1):

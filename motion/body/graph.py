@@ -96,7 +96,7 @@ class Temporal:
     rot_std: float = 0.3
 
     def factor(self, dtype=torch.float32) -> RigidConnection:
-        zero = torch.zeros(3, dtype=dtype)
+        zero = torch.zeros(3, dtype=dtype, device="cpu")
         return RigidConnection(zero, zero, self.pos_std, self.rot_std)
 
 

@@ -152,7 +152,7 @@ class SampleLayout:
         or ``c_L L + c_A r`` (outline, px)."""
 
         def mid(n):
-            return (torch.arange(n, dtype=torch.float64) + 0.5) / n
+            return (torch.arange(n, dtype=torch.float64, device="cpu") + 0.5) / n
 
         cols = []
         s = mid(self.along).repeat_interleave(self.across)
@@ -165,7 +165,7 @@ class SampleLayout:
         rho = mid(rings).sqrt().repeat_interleave(sectors)
         theta = (mid(sectors) - 0.5).repeat(rings) * math.pi
         n = rho.numel()
-        zc = torch.zeros(n, dtype=torch.float64)
+        zc = torch.zeros(n, dtype=torch.float64, device="cpu")
         area = zc + (math.pi / 2) / n
         for end, sign in ((0.0, -1.0), (1.0, 1.0)):
             cols.append(
@@ -727,7 +727,9 @@ class BodyObservation(UnaryFactor):
         nodes = nodes.to(x.device)
         frames, parts = nodes // p, nodes % p
         rest = estimates[:, : t_obs * p, :7].reshape(b, t_obs, p, 7)
-        rest_segments = self.shapes.segments(rest, torch.arange(p))  # (B, T, P, 2, 3)
+        rest_segments = self.shapes.segments(
+            rest, torch.arange(p, device=rest.device)
+        )  # (B, T, P, 2, 3)
         h, w = self.obs.size
         if self.occlusion:
             layers = body_layers(project_parts(self.rig, rest_segments, self.shapes.radii), h, w)

@@ -56,7 +56,7 @@ def render_residual(
     if poses.shape[1] != t_obs:
         raise ValueError(f"poses have {poses.shape[1]} frames; the observation has {t_obs}")
     h, w = obs.size
-    segments = shapes.segments(poses, torch.arange(shapes.num_parts))  # (S, T, P, 2, 3)
+    segments = shapes.segments(poses, torch.arange(shapes.num_parts, device=poses.device))
     layers = body_layers(project_parts(rig, segments, shapes.radii.to(poses)), h, w)
     covered = (layers.label >= 0).to(poses.dtype)  # (S, T, C, H, W)
     observed = obs.silhouette[0].to(covered)

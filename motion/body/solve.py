@@ -213,7 +213,7 @@ def _start_particles(
     s, k = settings.searches, settings.particles
     # float32: the body graphs' factors hold float32 parameters and render in it
     centres = start.reshape(1, body, 1, 7).expand(s, body, k, 7).float()
-    initial = torch.zeros(s, graph.num_nodes, k, 7)
+    initial = torch.zeros(s, graph.num_nodes, k, 7, device=start.device)
     initial[:, :body] = SE3().perturb(centres, settings.start_spread, generator)
     return initial
 

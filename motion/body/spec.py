@@ -186,7 +186,7 @@ class BodySpec:
     def landmarks(self, poses: Tensor) -> Tensor:
         """Both end landmarks of every part from part poses: ``(..., P, 7)`` ->
         ``(..., P, 2, 3)`` (the capsules' segments)."""
-        return self.shapes.segments(poses, torch.arange(self.num_parts))
+        return self.shapes.segments(poses, torch.arange(self.num_parts, device=poses.device))
 
 
 def _joint_limits(parts_path: Path, limits) -> dict | None:
@@ -203,7 +203,7 @@ def _joint_limits(parts_path: Path, limits) -> dict | None:
 def topological_order(parents: Tensor) -> Tensor:
     """``(P,)`` long: parts ordered by their depth in the tree ``parents`` (-1 for the
     root), root first, every parent before its children."""
-    depth = torch.zeros(len(parents), dtype=torch.long)
+    depth = torch.zeros(len(parents), dtype=torch.long, device="cpu")
     for p in range(len(parents)):
         q = int(parents[p])
         while q >= 0:
@@ -241,7 +241,7 @@ def joint_parts(skeleton: Skeleton, model: BodyModel) -> Tensor:
     the thigh's chain. So a part's length factor scales the offsets of the joints whose parent
     is in it (:meth:`motion.registration.types.Proportions.joint_scales`)."""
     spec = read_parts(model.parts_path)
-    own = torch.full((skeleton.num_joints,), -1, dtype=torch.long)
+    own = torch.full((skeleton.num_joints,), -1, dtype=torch.long, device="cpu")
     for p, name in enumerate(model.part_names):
         for j in _chain(skeleton, model, spec[name]):
             if own[j] < 0:  # the first part naming a joint keeps it

@@ -4,7 +4,7 @@ Every tuning constant already lives in a frozen settings dataclass of its stage
 (:class:`~motion.registration.video.VideoSettings`,
 :class:`~motion.registration.approximate.Stage1Settings`,
 :class:`~motion.registration.refine.RefineSettings`); this module only changes some of their
-fields by name. A key is a dotted path through those dataclasses -- ``seed``, ``scale``,
+fields by name. A key is a dotted path through those dataclasses -- ``seed``, ``scale``, ``device``,
 ``video.width``, ``stage1.yaw_starts``, ``refine.particles``, ``refine.temporal.pos_std`` --
 in a YAML mapping (nested or dotted) or as ``key=value`` on the command line (the value is
 read as YAML: ``true``, ``3``, ``0.5``, ``none``, ``[1, 2]``). Files and values are read by the
@@ -167,7 +167,8 @@ def _unknown(obj, item: _Item, fields) -> ConfigError:
     hint = f" (did you mean {' or '.join(close)}?)" if close else ""
     if isinstance(obj, RegisterConfig):
         known = (
-            "video.*, perception.*, stage1.*, refine.*, polish.*, movement.*, findings.*, scale, seed "
+            "video.*, perception.*, stage1.*, refine.*, polish.*, movement.*, findings.*, scale, seed, "
+            "device "
             "(python -m motion register --help)"
         )
     else:
@@ -270,8 +271,8 @@ def override(obj, key: str, value, where: str = "settings"):
     return _apply(obj, [_Item(key, key, value, where)])
 
 
-#: top-level shortcuts: ``seed=1`` means ``registration.seed=1``
-_SHORTCUTS = ("seed", "scale", "stage1", "refine", "polish")
+#: top-level shortcuts: ``seed=1`` means ``registration.seed=1``, ``device=cuda`` ``registration.device=cuda``
+_SHORTCUTS = ("seed", "scale", "device", "stage1", "refine", "polish")
 
 
 def _route(key: str) -> str:

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from motion.body.observation import PartShapes, body_layers
 from motion.cameras import CameraRig
+from motion.devices import DeviceError, resolve_device, to_device
 from motion.registration.approximate import (
     BodyScale,
     Stage1Result,
@@ -87,6 +88,21 @@ class RegistrationSettings(Settings):
         None, "the body scale G if known (none: estimated in stage 0)", gt=0
     )
     seed: int = setting(0, "seed of every random draw", ge=0, le=2**32 - 1)
+    device: str = setting(
+        "cpu",
+        "where stages 0-3 and the polish run: cpu, cuda or cuda:N (a GPU and a CUDA build of "
+        "torch); the time alignments' dynamic programmes stay on the CPU, and the result "
+        "comes back to it. A GPU draws other random numbers than the CPU: the same seed "
+        "gives another, equally likely result",
+    )
+
+    def validate(self) -> None:
+        """Check every field, and that this machine has the device asked for."""
+        super().validate()
+        try:
+            resolve_device(self.device)
+        except DeviceError as err:
+            raise RegistrationSettingsError(f"{type(self).__name__}: {err}") from None
 
 
 def silhouette_iou(
@@ -99,7 +115,7 @@ def silhouette_iou(
     out = []
     for lo in range(0, poses.shape[0], chunk):
         pose = poses[lo : lo + chunk]
-        segments = shapes.segments(pose, torch.arange(shapes.num_parts))
+        segments = shapes.segments(pose, torch.arange(shapes.num_parts, device=poses.device))
         parts = project_parts(rig, segments, shapes.radii.to(pose))
         covered = body_layers(parts, h, w).label >= 0
         seen = silhouettes[lo : lo + chunk] > 0.5
@@ -114,9 +130,9 @@ def _fill_unseen(stage1: Stage1Result, seen: Tensor) -> Stage1Result:
     (where the person is in view): C interpolated linearly in time between seen frames
     (held beyond the first and last), T from the nearest seen frame. BP then carries the
     unseen frames on their priors and temporal edges."""
-    frames = torch.arange(len(seen), dtype=torch.float64)
-    known = seen.nonzero().flatten()
-    c = np.interp(frames.numpy(), known.double().numpy(), stage1.C.double().numpy())
+    frames = torch.arange(len(seen), dtype=torch.float64, device="cpu")  # NumPy reads it
+    known = seen.nonzero().flatten().cpu()
+    c = np.interp(frames.numpy(), known.double().numpy(), stage1.C.double().cpu().numpy())
     nearest = (frames[:, None] - known[None].double()).abs().argmin(1)
     return dataclasses.replace(
         stage1,
@@ -141,7 +157,7 @@ def _carry_over_nonfinite(stage1: Stage1Result, name: str) -> tuple[Stage1Result
             "frames (its pair fits diverged to NaN): the silhouettes may not show a body "
             "the reference's postures can cover"
         )
-    good = torch.ones(frames, dtype=torch.bool)
+    good = torch.ones(frames, dtype=torch.bool, device="cpu")
     good[bad] = False
     kept = good.nonzero().flatten()
     known = dataclasses.replace(
@@ -194,7 +210,10 @@ def register(
         raise RegistrationError(
             f"{video.name}: expected at least 2 video frames; got {video.num_frames}"
         )
-    generator = torch.Generator().manual_seed(s.seed)
+    device = resolve_device(s.device)
+    # every stage runs where its inputs are (each tensor it makes takes their device)
+    reference, video = to_device(reference, device), to_device(video, device)
+    generator = torch.Generator(device=device).manual_seed(s.seed)
     timings, notes = {}, {}
 
     t0 = time.perf_counter()
@@ -255,7 +274,7 @@ def register(
         notes["polish"] = f"loss {polished.loss_start:.1f} -> {polished.loss_end:.1f} nats"
     proportions = polished.proportions
     a = reference.rotations[c].transpose(-1, -2) @ rotations
-    a[:, 0] = torch.eye(3, dtype=a.dtype)
+    a[:, 0] = torch.eye(3, dtype=a.dtype, device=a.device)
     spec = scaled_spec(reference.spec, scale, proportions.part_scales)
     shapes = PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float())
     posture = reference.posture_poses(rotations, scale, proportions.joint_scales())
@@ -263,7 +282,7 @@ def register(
     fit = silhouette_iou(
         shapes, video.cameras, video.observation.silhouette[0], poses.to(refined.poses)
     )
-    return Registration(
+    result = Registration(
         C=c,
         T_rotation=rotations[:, 0],
         T_translation=translation,
@@ -279,3 +298,4 @@ def register(
         part_spread_deg=refined.part_spread_deg,
         proportions=proportions if proportions.measured else None,
     )
+    return to_device(result, "cpu")  # what reports and exports read

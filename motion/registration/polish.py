@@ -287,7 +287,7 @@ class _Posture:
         self.reference = reference
         self.scale = scale
         self.start = start.double()  # (n, J, 3, 3)
-        self.mask = torch.zeros(start.shape[1], 1, dtype=torch.float64)
+        self.mask = torch.zeros(start.shape[1], 1, dtype=torch.float64, device=start.device)
         self.mask[driven] = 1.0
 
     def rotations(self, joints: Tensor, root: Tensor) -> Tensor:
@@ -453,7 +453,7 @@ def part_groups(names: list[str], symmetric: bool) -> tuple[list[str], Tensor]:
         if key not in groups:
             groups.append(key)
         index.append(groups.index(key))
-    return groups, torch.tensor(index)
+    return groups, torch.tensor(index, device="cpu")
 
 
 def _spread_frames(seen: Tensor, most: int) -> Tensor:
@@ -462,7 +462,7 @@ def _spread_frames(seen: Tensor, most: int) -> Tensor:
     frames = seen.nonzero().flatten()
     if len(frames) <= most:
         return frames
-    picks = torch.linspace(0, len(frames) - 1, most).round().long().unique()
+    picks = torch.linspace(0, len(frames) - 1, most, device=seen.device).round().long().unique()
     return frames[picks]
 
 
@@ -506,7 +506,8 @@ def polish_posture(
         return start
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     columns, keypoint_joints = _keypoint_columns(reference, video)
-    generator = torch.Generator().manual_seed(s.seed)
+    # draws where the silhouettes are (torch.multinomial takes a generator of their device)
+    generator = torch.Generator(device=video.observation.silhouette.device).manual_seed(s.seed)
 
     def problem(frames: Tensor | slice, rot: Tensor, trans: Tensor, body: Proportions):
         obs = video.observation
@@ -546,9 +547,11 @@ def polish_posture(
         chunk = slice(first, min(t, first + s.frames_per_chunk))
         task = problem(chunk, out_rot[chunk], out_trans[chunk], proportions)
         n = chunk.stop - chunk.start
-        joints = torch.zeros(n, j, 3, dtype=torch.float64, requires_grad=True)
-        root = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
-        shift = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+        joints = torch.zeros(
+            n, j, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True
+        )
+        root = torch.zeros(n, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True)
+        shift = torch.zeros(n, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True)
 
         def loss(task=task, joints=joints, root=root, shift=shift, anchor=anchor):
             return sum(_losses(task, joints, root, shift, None, anchor, True, s).values())
@@ -579,7 +582,11 @@ def _keypoint_columns(
     pairs = [(i, names.index(n)) for i, n in enumerate(video.keypoint_joints) if n in names]
     if not pairs:
         return None, None
-    return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
+    dev = video.observation.keypoints.device
+    return (
+        torch.tensor([i for i, _ in pairs], device=dev),
+        torch.tensor([j for _, j in pairs], device=dev),
+    )
 
 
 def _fit_proportions(task: _Problem, s: PosturePolishSettings) -> Tensor:
@@ -589,10 +596,14 @@ def _fit_proportions(task: _Problem, s: PosturePolishSettings) -> Tensor:
     names = task.proportions.part_names
     _, group = part_groups(names, s.symmetric)
     n, j = task.posture.start.shape[:2]
-    joints = torch.zeros(n, j, 3, dtype=torch.float64, requires_grad=True)
-    root = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
-    shift = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
-    log_scale = torch.zeros(int(group.max()) + 1, dtype=torch.float64, requires_grad=True)
+    dev = task.posture.start.device
+    group = group.to(dev)
+    joints = torch.zeros(n, j, 3, dtype=torch.float64, device=dev, requires_grad=True)
+    root = torch.zeros(n, 3, dtype=torch.float64, device=dev, requires_grad=True)
+    shift = torch.zeros(n, 3, dtype=torch.float64, device=dev, requires_grad=True)
+    log_scale = torch.zeros(
+        int(group.max()) + 1, dtype=torch.float64, device=dev, requires_grad=True
+    )
     spread = math.log1p(s.proportion_pct / 100)
 
     def loss() -> Tensor:
@@ -601,5 +612,5 @@ def _fit_proportions(task: _Problem, s: PosturePolishSettings) -> Tensor:
 
     _, _, best = _descend(loss, [joints, root, shift, log_scale], s.proportion_steps, s.lr)
     if best is None:  # nothing finite: the reference's proportions
-        return torch.ones(len(names), dtype=torch.float64)
+        return torch.ones(len(names), dtype=torch.float64, device=dev)
     return best[3].exp()[group]

@@ -347,13 +347,14 @@ def part_keypoints(reference: Reference, keypoint_joints: list[str] | None) -> T
         return None
     column = {name: i for i, name in enumerate(keypoint_joints)}
     model, spec = reference.model, reference.spec
-    out = torch.full((spec.num_parts, 2), -1, dtype=torch.long)
+    out = torch.full((spec.num_parts, 2), -1, dtype=torch.long, device="cpu")
     for p in range(spec.num_parts):
         for end, role in enumerate((spec.from_roles[p], spec.to_roles[p])):
             names = model.mapping[model.roles[int(role)]]
             if len(names) == 1 and names[0] in column:
                 out[p, end] = column[names[0]]
-    return out if (out >= 0).any() else None
+    # built on the host, entry by entry; the cue reads it beside the data
+    return out.to(reference.rotations.device) if (out >= 0).any() else None
 
 
 def colour_image(image: Tensor | None) -> Tensor | None:
@@ -378,7 +379,7 @@ def estimate_part_colours(
     if obs.image is None:
         raise RegistrationError(f"{video.name}: no colour images to learn part colours from")
     h, w = obs.size
-    parts = torch.arange(shapes.num_parts)
+    parts = torch.arange(shapes.num_parts, device=poses.device)
     whole: list[Tensor] = []  # colours (N, 3) of the silhouette's pixels, chunk by chunk
     per_part: list[list[Tensor]] = [[] for _ in range(shapes.num_parts)]
     for lo in range(0, poses.shape[0], chunk):
@@ -394,7 +395,11 @@ def estimate_part_colours(
         for p in range(shapes.num_parts):  # a loop over 15 parts, not over pixels
             per_part[p].append(image[(label == p) & on])
     silhouette = torch.cat(whole)
-    median = silhouette.median(0).values if len(silhouette) else torch.full((3,), 0.5)
+    median = (
+        silhouette.median(0).values
+        if len(silhouette)
+        else torch.full((3,), 0.5, device=poses.device)
+    )
     out = median.expand(shapes.num_parts, 3).clone()
     for p, pixels in enumerate(per_part):
         pixels = torch.cat(pixels)
@@ -411,12 +416,12 @@ def _window_starts(frames: int, window: int, overlap: int) -> list[int]:
     return sorted(set(starts))
 
 
-def _owner(frames: int, starts: list[int], window: int) -> Tensor:
+def _owner(frames: int, starts: list[int], window: int, device: torch.device) -> Tensor:
     """``(T',)`` which window each frame takes its estimate from: the one in which it lies
-    farthest from an edge."""
-    t = torch.arange(frames)
-    best = torch.full((frames,), -1.0)
-    owner = torch.zeros(frames, dtype=torch.long)
+    farthest from an edge (on ``device``)."""
+    t = torch.arange(frames, device=device)
+    best = torch.full((frames,), -1.0, device=device)
+    owner = torch.zeros(frames, dtype=torch.long, device=device)
     for i, s in enumerate(starts):
         inside = (t >= s) & (t < s + window)
         margin = torch.minimum(t - s, s + window - 1 - t).float()
@@ -487,18 +492,20 @@ def _run_window(
     )
     pairwise = [_kinematic_edges(problem, problem.body[c]), *template.build(n)]
     v_body = n * p
-    body_nodes = torch.arange(v_body)
+    body_nodes = torch.arange(v_body, device="cpu")  # graph structure: on the CPU
     spaces = [(SE3(), body_nodes)]
     unaries = [(body_nodes, unary)]
     if couple:
         width = 2 * s.band + 1
         last = problem.body.shape[0] - 1
         offsets = (c - s.band).clamp(0, max(0, last + 1 - width))
-        states = (offsets[:, None] + torch.arange(width)).clamp(max=last)  # (n, W)
+        states = (offsets[:, None] + torch.arange(width, device=offsets.device)).clamp(
+            max=last
+        )  # (n, W)
         targets = place_poses(
             rotation[:, None], translation[:, None], problem.body[states]
         )  # (n, W, P, 7)
-        chain_nodes = v_body + torch.arange(n)
+        chain_nodes = v_body + torch.arange(n, device="cpu")
         spaces.append((Discrete(width), chain_nodes))
         if n > 1:
             chain = torch.stack([chain_nodes[:-1], chain_nodes[1:]], 1)
@@ -573,11 +580,13 @@ def _kinematic_edges(problem: _Problem, reference: Tensor) -> tuple[Tensor, Rigi
     about every axis, including the twist about a limb's axis that no silhouette shows."""
     spec, c = problem.reference.spec, problem.settings.connection
     n, e = reference.shape[0], spec.edges.shape[0]
-    edges = (spec.edges[None] + (torch.arange(n) * spec.num_parts)[:, None, None]).reshape(-1, 2)
+    # the graph's structure lives on the CPU (pgm's convention), its parameters with the data
+    frames = torch.arange(n, device="cpu") * spec.num_parts
+    edges = (spec.edges.cpu()[None] + frames[:, None, None]).reshape(-1, 2)
     offsets = problem.connection_offsets.repeat(n, 1)
     factor = RigidConnection(
         offsets,
-        torch.zeros(3),
+        torch.zeros(3, device=offsets.device),
         c.pos_std,
         problem.settings.articulation_std,
         relative_rotations(spec, reference).reshape(n * e, 4).float(),
@@ -615,7 +624,9 @@ def _fit_weights(problem: _Problem, unit: Tensor, body: Tensor) -> float | Tenso
     log_core = math.log1p(-s.articulation_outlier) - swing**2 / (2 * narrow**2)
     log_tail = math.log(s.articulation_outlier) - swing**2 / (2 * wide**2)
     r = torch.sigmoid(log_core - log_tail + 2 * math.log(wide / narrow))
-    weights = torch.full((*unit.shape[:-2], spec.num_parts), core, dtype=unit.dtype)
+    weights = torch.full(
+        (*unit.shape[:-2], spec.num_parts), core, dtype=unit.dtype, device=unit.device
+    )
     weights[..., child] = s.landmark_std**2 * (r / (2 * narrow**2) + (1 - r) / (2 * wide**2))
     return weights
 
@@ -625,7 +636,9 @@ def _in_view(problem: _Problem, poses: Tensor) -> Tensor:
     7)`` -- the share of its two ends inside some camera's image, in front of it. A part
     out of view is estimated from the priors alone (the last round's C), so its evidence
     about C is no evidence."""
-    segments = problem.shapes.segments(poses, torch.arange(problem.shapes.num_parts))
+    segments = problem.shapes.segments(
+        poses, torch.arange(problem.shapes.num_parts, device=poses.device)
+    )
     rig = problem.video.cameras
     uv, z = rig.project(segments.flatten(-3, -2))  # (n, C, 2P, 2), (n, C, 2P)
     size = rig.size.to(uv)[None, :, None, :]  # (1, C, 1, 2)
@@ -645,10 +658,10 @@ def _tempo_c(
     width = min(2 * s.tempo_band + 1, ref_frames)
     offsets = (c - s.tempo_band).clamp(0, ref_frames - width)
     p = problem.reference.spec.num_parts
-    cost = torch.empty(c.shape[0], width, dtype=torch.float64)
+    cost = torch.empty(c.shape[0], width, dtype=torch.float64, device=c.device)
     for a in range(0, c.shape[0], FRAME_CHUNK):
         sl = slice(a, a + FRAME_CHUNK)
-        states = offsets[sl, None] + torch.arange(width)  # (m, W)
+        states = offsets[sl, None] + torch.arange(width, device=offsets.device)  # (m, W)
         seen = _in_view(problem, poses[sl])  # (m, P)
         if s.tempo_placement == "fitted":
             targets = _fitted_postures(problem.spec, problem.body[states], poses[sl], seen)
@@ -656,14 +669,16 @@ def _tempo_c(
             targets = place_poses(rotation[sl, None], translation[sl, None], problem.body[states])
         per_edge = targets.permute(0, 2, 1, 3).reshape(-1, width, 7)  # (m P, W, 7)
         coupling = LookupPose(per_edge, s.couple_pos_std, s.couple_rot_std)
-        choice = torch.arange(width, dtype=poses.dtype).expand(1, per_edge.shape[0], width)
+        choice = torch.arange(width, dtype=poses.dtype, device=poses.device).expand(
+            1, per_edge.shape[0], width
+        )
         x = poses[sl].reshape(1, -1, 1, 7)
         lp = coupling.log_potential(slice(None), choice[..., None], x, width)  # (1, m P, W, 1)
         cost[sl] = -(lp[0, :, :, 0].reshape(-1, p, width) * seen[..., None]).sum(1).double()
     ratio = problem.reference.frame_rate / problem.video.frame_rate
     relative = s.tempo_std / math.sqrt(problem.video.frame_rate)  # per video frame
     prior = TempoPrior(ratio, s.slope_weight, relative)
-    return tempo_align(cost, offsets, problem.max_step, prior).path[0]
+    return tempo_align(cost, offsets, problem.max_step, prior).path[0].to(c.device)  # from the CPU
 
 
 def _fitted_postures(spec: BodySpec, body: Tensor, estimates: Tensor, seen: Tensor) -> Tensor:
@@ -721,7 +736,9 @@ def _problem(
         PartShapes(spec.shapes.axis.float(), spec.shapes.radii.float()),
         [],
         None,
-        reference.body_poses(torch.arange(reference.num_frames), scale).float(),
+        reference.body_poses(
+            torch.arange(reference.num_frames, device=reference.rotations.device), scale
+        ).float(),
         max_step,
         -slope_step_cost(max_step, ratio, settings.slope_weight).float(),
         spec.offsets[spec.edges[:, 1]].float(),
@@ -745,7 +762,7 @@ def refine(
     ``scale`` (G). ``colours``: ``(P, 3)`` part colours for the intensity cue (``None``:
     learnt from the images at the start posture when the video has colour)."""
     s = settings or RefineSettings()
-    g = generator or torch.Generator().manual_seed(0)
+    g = generator or torch.Generator(device=rotation.device).manual_seed(0)
     t = video.num_frames
     if c.shape != (t,) or rotation.shape != (t, 3, 3) or translation.shape != (t, 3):
         raise RegistrationError(
@@ -760,17 +777,18 @@ def refine(
         )
     problem = _problem(reference, video, scale, s)
     rotation, translation = rotation.float(), translation.float()
+    c = c.to(rotation.device)  # C and T on the device of the data (stage 1's C is the CPU's)
     if colours is None and video.observation.image is not None and s.intensity > 0:
         start = place_poses(rotation, translation, problem.body[c])
         colours = estimate_part_colours(problem.shapes, video, start)
     problem.cues = _cues(reference, video, s, colours)
     problem.colours = colours if s.intensity > 0 else None
     starts = _window_starts(t, s.window, s.overlap)
-    owner = _owner(t, starts, s.window)
+    owner = _owner(t, starts, s.window, c.device)
     wrap = progress or (lambda items, desc, total: items)
     c = c.clone()
-    poses = torch.zeros(t, reference.spec.num_parts, 7)
-    spread = torch.full((t, reference.spec.num_parts), math.nan)
+    poses = torch.zeros(t, reference.spec.num_parts, 7, device=c.device)
+    spread = torch.full((t, reference.spec.num_parts), math.nan, device=c.device)
     changes: list[int] = []
     lost: set[int] = set()  # frames where BP found no finite posture
     rounds = 1 + (s.rounds if s.refine_c else 0)

@@ -111,7 +111,7 @@ class Reference:
         """``B_t`` at reference ``frames`` (any shape ``S``): the posture with the root joint
         at the origin and its rotation the identity, bones scaled by ``scale`` (G).
         Returns an :class:`FKResult` with positions ``(*S, J, 3)`` metres (float64)."""
-        frames = torch.as_tensor(frames, dtype=torch.long)
+        frames = torch.as_tensor(frames, dtype=torch.long, device=self.rotations.device)
         if frames.numel() and (int(frames.min()) < 0 or int(frames.max()) >= self.num_frames):
             raise RegistrationError(
                 f"reference frames must be in [0, {self.num_frames}); got "
@@ -128,12 +128,12 @@ class Reference:
         multiplies each joint's offset on top of ``scale`` (the student's proportions:
         :meth:`Proportions.joint_scales`; differentiable)."""
         rot = rotations.to(torch.float64).clone()
-        rot[..., 0, :, :] = torch.eye(3, dtype=rot.dtype)
+        rot[..., 0, :, :] = torch.eye(3, dtype=rot.dtype, device=rot.device)
         offsets = self.skeleton.offsets.to(rot).clone()
         offsets[0] = 0.0  # the root joint sits at the origin
         if joint_scales is not None:
             offsets = offsets * joint_scales.to(rot)[:, None]
-        zero = torch.zeros(*rot.shape[:-3], 3, dtype=rot.dtype)
+        zero = torch.zeros(*rot.shape[:-3], 3, dtype=rot.dtype, device=rot.device)
         fk = forward_kinematics(self.skeleton, rot, zero, offsets)
         # the root is at the origin, so scaling every position scales every bone
         return FKResult(fk.positions * scale, fk.rotations)
@@ -183,7 +183,9 @@ class Proportions:
         reference's own, not measured)."""
         measured = part_scales is not None
         if part_scales is None:
-            part_scales = torch.ones(reference.spec.num_parts, dtype=torch.float64)
+            part_scales = torch.ones(
+                reference.spec.num_parts, dtype=torch.float64, device=reference.rotations.device
+            )
         if part_scales.shape != (reference.spec.num_parts,):
             raise RegistrationError(
                 f"expected one scale per part ({reference.spec.num_parts},); got "

@@ -34,6 +34,7 @@ from experiments.register_synthetic import (
 )
 from motion.registration import Reference
 from motion.registration.export import JointAngles
+from motion.settings import SettingError
 from motion.synth import time_warp
 from tests.motion.body.conftest import WALK
 
@@ -233,6 +234,20 @@ def test_any_registration_setting_is_set_by_its_dotted_key_and_a_wrong_one_is_re
         _settings(RegisterSyntheticConfig(registration={"refine.articulation_sd": 0.1}))
     with pytest.raises(ConfigError, match=r"refine\.particles must be an integer"):
         _settings(RegisterSyntheticConfig(registration={"refine.particles": 0.5}))
+
+
+def test_the_device_reaches_the_registration_and_the_runner_holds_a_gpu_for_it():
+    from experiments.runner import _resources
+
+    assert _settings(RegisterSyntheticConfig()).device == "cpu"
+    assert _resources(RegisterSyntheticConfig(), 2) == (2, 0)
+    gpu = RegisterSyntheticConfig(device="cuda")
+    assert _resources(gpu, 2) == (2, 1)
+    if torch.cuda.is_available():
+        assert _settings(gpu).device == "cuda"
+    else:  # checked where the registration is built, on the machine that runs it
+        with pytest.raises(SettingError, match="'cuda' asked for"):
+            _settings(gpu)
 
 
 def test_the_true_posture_covers_the_rendered_silhouettes_and_a_wrong_one_less():

@@ -69,7 +69,9 @@ class _Batch:
         self.lm = s.landmarks[cols].reshape(n, -1, 3).permute(2, 1, 0).contiguous()  # (3, L, n)
         self.with_scale = with_scale
         self.dof = 7 if with_scale else 6
-        base = (rows[None, :] * c + torch.arange(c)[:, None]) * (s.H * s.W)  # (C, n)
+        base = (rows[None, :] * c + torch.arange(c, device=rows.device)[:, None]) * (
+            s.H * s.W
+        )  # (C, n)
         self.base = base[:, None, None, :]
         obs = s.obs[rows].permute(1, 3, 2, 0)  # (C, 2, M, n)
         self.ou = obs[:, 0, None].contiguous()  # (C, 1, M, n)
@@ -120,7 +122,7 @@ class _Batch:
             return u, v, zi, None
         # d u / d X = (fx R0 + sk R1 - (u - cx) R2) / z; d v / d X = (fy R1 - (v - cy) R2) / z
         c, num, n = u.shape
-        jl = torch.empty(c, num, 2, self.dof, n, dtype=u.dtype)
+        jl = torch.empty(c, num, 2, self.dof, n, dtype=u.dtype, device=u.device)
         x0, x1, x2 = xr
         rows = (
             (uc, [torch.addcmul(fx * rc[:, 0, j], sk, rc[:, 1, j]) for j in range(3)]),
@@ -158,7 +160,11 @@ class _Batch:
         u0 = u.floor().clamp_(max=s.W - 2)
         v0 = v.floor().clamp_(max=s.H - 2)
         fu, fv = u - u0, v - v0
-        i = torch.addcmul(u0, v0, torch.tensor(float(s.W), dtype=u0.dtype)).long().add_(self.base)
+        i = (
+            torch.addcmul(u0, v0, torch.tensor(float(s.W), dtype=u0.dtype, device=u0.device))
+            .long()
+            .add_(self.base)
+        )
         shape = (*i.shape, 2)
         flat = i.reshape(-1)
         top = pair_map.index_select(0, flat).view(fu.dtype).view(shape)
@@ -224,7 +230,7 @@ class _Batch:
             terms.append(self._image(r, p.T, sc, jac))
         if self.kp is not None and st.keypoint_weight > 0:
             terms.append(self._keypoints(r, p.T, sc, jac))
-        cost = torch.zeros(n, dtype=rot.dtype)
+        cost = torch.zeros(n, dtype=rot.dtype, device=rot.device)
         jtj = g = None
         for t_cost, t_jtj, t_g in terms:
             cost = cost + t_cost
@@ -260,8 +266,8 @@ class _Batch:
         if sc is not None:
             px = px * sc
         radii = (px[0].expand(c, num_p, n), px[1].expand(c, num_p, n))
-        cost = torch.zeros(n, dtype=dt)
-        acc = torch.zeros(13, c, num_p, n, dtype=dt) if jac else None
+        cost = torch.zeros(n, dtype=dt, device=px.device)
+        acc = torch.zeros(13, c, num_p, n, dtype=dt, device=px.device) if jac else None
         cut = (st.truncate * self.h)[:, None, None]  # (C, 1, 1, n) px
         if st.outside_weight > 0:
             cost = cost + self._points(
@@ -338,12 +344,18 @@ class _Batch:
         if jac:
             # the nearest part's index: parts - 1e6 (sd - near) peaks there (float arithmetic;
             # argmin over a leading dimension is far slower than amin here)
-            parts = torch.arange(p, dtype=sd.dtype)[:, None, None]
-            k = torch.addcmul(parts, sd - near.unsqueeze(1), torch.tensor(-1e6, dtype=sd.dtype))
+            parts = torch.arange(p, dtype=sd.dtype, device=sd.device)[:, None, None]
+            k = torch.addcmul(
+                parts, sd - near.unsqueeze(1), torch.tensor(-1e6, dtype=sd.dtype, device=sd.device)
+            )
             k = k.amax(1).round_().long().clamp_(0, p - 1)  # (C, M, n)
             # flat index of (c, k, j) in (C, P, n): the nearest part's segment per pixel, and
             # the pixel's entry of acc's (C, P, n) block
-            col = ((torch.arange(c)[:, None, None] * p + k) * n + torch.arange(n)).reshape(-1)
+            at = k.device
+            col = (torch.arange(c, device=at)[:, None, None] * p + k) * n + torch.arange(
+                n, device=at
+            )
+            col = col.reshape(-1)
             near_seg = (x.reshape(-1).index_select(0, col).view(k.shape) for x in seg)
             # its t, offset and distance again, from (C, M, n) inputs: the same operations on
             # the same numbers as above (gathering them from (C, P, M, n) is slower)
@@ -353,7 +365,7 @@ class _Batch:
             gu = xu.mul_(scale).neg_()
             gv = xv.mul_(scale).neg_()
             wa, wb = 1 - t_k, t_k
-            vals = torch.empty(13, *res.shape, dtype=res.dtype)
+            vals = torch.empty(13, *res.shape, dtype=res.dtype, device=res.device)
             ww = (wa * wa, wa * wb, wb * wb)
             for gg, g2 in enumerate((gu * gu, gu * gv, gv * gv)):
                 for j in range(3):
@@ -447,7 +459,7 @@ def pair_costs(
         ``(R, W)`` costs (settings dtype).
     """
     st = _settings(settings)
-    scene = _build_scene(reference, video, scale, st, _generator(generator))
+    scene = _build_scene(reference, video, scale, st, _generator(generator, video))
     rows, cols = _check_pairs(scene, rows, cols)
     rot, p = _as_pair_init((rotation, translation), rows, cols, st.dtype)
     r, w = cols.shape

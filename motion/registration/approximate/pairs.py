@@ -65,7 +65,8 @@ def _window(scene: _Scene, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 def _track_refs(scene: _Scene, frames: Tensor) -> Tensor:
     """The reference frames that the track at video ``frames (n,)`` is fitted against:
     ``settings.yaw_starts`` evenly spaced ones, ``(n, W)``."""
-    refs = torch.linspace(0, scene.num_ref - 1, scene.settings.yaw_starts).round().long().unique()
+    refs = torch.linspace(0, scene.num_ref - 1, scene.settings.yaw_starts, device=scene.device)
+    refs = refs.round().long().unique()
     return refs.expand(len(frames), -1)
 
 
@@ -87,7 +88,7 @@ def _fit_track(scene: _Scene, frames: Tensor, kp: Init | None) -> None:
     finally:
         scene.tracking = False
     k = fit.cost.argmin(-1)
-    scene.track[frames] = fit.translation[torch.arange(len(frames)), k]
+    scene.track[frames] = fit.translation[torch.arange(len(frames), device=k.device), k]
 
 
 def _untracked(scene: _Scene, frames: Tensor) -> Tensor:
@@ -109,7 +110,7 @@ def _heading_penalty(scene: _Scene, rows: Tensor, cols: Tensor, rot: Tensor) -> 
     for pairs ``rows``, ``cols`` (broadcast to ``rot``'s leading shape). ``(...)``."""
     st = scene.settings
     if scene.v_ref is None or scene.tracking:
-        return torch.zeros(rot.shape[:-2], dtype=rot.dtype)
+        return torch.zeros(rot.shape[:-2], dtype=rot.dtype, device=rot.device)
     lo, hi, span = _window(scene, rows.reshape(-1))
     v_obs = (_track_at(scene, hi) - _track_at(scene, lo)) / span[:, None]
     v_obs = (v_obs - (v_obs @ scene.up)[:, None] * scene.up).reshape(*rows.shape, 3)
@@ -151,8 +152,8 @@ def _analytic_starts(scene: _Scene, rows: Tensor, cols: Tensor, yaw_starts: int,
             sub = applies[lo : lo + nr].nonzero().flatten()
             if not len(sub):  # no row of this chunk is cut that way
                 continue
-            p0 = torch.zeros(nr, w, yaw_starts, 3, dtype=yaws.dtype)
-            cost0 = torch.full((nr, w, yaw_starts), math.inf, dtype=yaws.dtype)
+            p0 = torch.zeros(nr, w, yaw_starts, 3, dtype=yaws.dtype, device=yaws.device)
+            cost0 = torch.full((nr, w, yaw_starts), math.inf, dtype=yaws.dtype, device=yaws.device)
             target = _targets(scene, rr[sub], cc[sub], depth, shift)  # (n, W, 3)
             centre = (rot0[sub] @ scene.centre_b[cc[sub]][:, :, None, :, None])[..., 0]
             p0[sub] = target[:, :, None] - centre
@@ -265,14 +266,14 @@ def _fit_candidates(
     if count:
         scene.fits += cols.numel()
     if anchor_stride > 1 and w > anchor_stride:
-        pos = torch.arange(anchor_stride // 2, w, anchor_stride)
+        pos = torch.arange(anchor_stride // 2, w, anchor_stride, device=cols.device)
         a_inits = [(i[0][:, pos], i[1][:, pos]) for i in inits]
         fit = _best(
             *_fit_candidates(
                 scene, rows, cols[:, pos], yaw_starts, refine, iterations, a_inits, count=False
             )
         )
-        j = torch.arange(w)
+        j = torch.arange(w, device=cols.device)
         lo = (torch.searchsorted(pos, j, right=True) - 1).clamp(0, len(pos) - 1)
         hi = (lo + 1).clamp(max=len(pos) - 1)
         near = torch.stack([lo, hi], -1)  # (W, 2) the anchors on either side
@@ -345,7 +346,7 @@ def fit_rigid_pairs(
         RegistrationError: bad shapes or indices, empty input, frames without silhouettes.
     """
     st = _settings(settings)
-    scene = _build_scene(reference, video, scale, st, _generator(generator))
+    scene = _build_scene(reference, video, scale, st, _generator(generator, video))
     rows, cols = _check_pairs(scene, rows, cols)
     inits = [] if init is None else [_as_pair_init(init, rows, cols, st.dtype)]
     cost, rot, p = _fit_candidates(

@@ -73,7 +73,7 @@ def _final_transforms(scene: _Scene, c_path: Tensor, row_init: Init | None):
     st = dataclasses.replace(scene.settings, edge_weight=scene.settings.final_edge_weight)
     scene.settings = st  # the final fit's own edge weight (see Stage1Settings)
     tv = c_path.shape[0]
-    rows = torch.arange(tv)
+    rows = torch.arange(tv, device=c_path.device)
     cols = c_path[:, None]
     inits = [] if row_init is None else [_as_pair_init(row_init, rows, cols, st.dtype)]
     cost, rot, p = _fit_candidates(
@@ -123,15 +123,15 @@ def approximate_registration(
     """
     start = time.perf_counter()
     st = _settings(settings)
-    scene = _build_scene(reference, video, scale, st, _generator(generator))
+    scene = _build_scene(reference, video, scale, st, _generator(generator, video))
     tv, tr = scene.num_video, scene.num_ref
     ratio = reference.frame_rate / video.frame_rate
     max_step = max(1, math.ceil(st.step_factor * ratio))
     radius = st.radius if st.radius is not None else max_step + st.factor
     dt = st.dtype
-    best_cost = torch.full((tv,), math.inf, dtype=dt)
-    best_rot = torch.eye(3, dtype=dt).repeat(tv, 1, 1)
-    best_p = torch.zeros(tv, 3, dtype=dt)
+    best_cost = torch.full((tv,), math.inf, dtype=dt, device=scene.device)
+    best_rot = torch.eye(3, dtype=dt, device=scene.device).repeat(tv, 1, 1)
+    best_p = torch.zeros(tv, 3, dtype=dt, device=scene.device)
 
     def cost_fn(rows: Tensor, cols: Tensor) -> Tensor:
         seen = torch.isfinite(best_cost).nonzero().flatten()
@@ -155,7 +155,7 @@ def approximate_registration(
         fit = _best(cost, rot, p)
         k = fit.cost.argmin(-1)
         row_best = fit.cost.gather(-1, k[:, None])[:, 0]
-        idx = torch.arange(len(rows))
+        idx = torch.arange(len(rows), device=rows.device)
         better = row_best < best_cost[rows]
         upd = rows[better]
         best_cost[upd] = row_best[better]

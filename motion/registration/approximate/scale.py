@@ -69,7 +69,7 @@ def estimate_body_scale(
         RegistrationError: bad input, ``frames < 1``.
     """
     st = _settings(settings)
-    gen = _generator(generator)
+    gen = _generator(generator, video)
     st = dataclasses.replace(
         st, observed_points=st.scale_observed_points, edge_weight=st.scale_edge_weight
     )
@@ -84,12 +84,13 @@ def estimate_body_scale(
             note="G = 1.0 (not estimated): one perspective camera cannot tell body size from depth",
         )
     nf = min(frames, video.num_frames)
-    video = video.cut(torch.linspace(0, video.num_frames - 1, nf).round().long())
-    rows = torch.arange(nf)
+    dev = video.observation.silhouette.device
+    video = video.cut(torch.linspace(0, video.num_frames - 1, nf, device=dev).round().long())
+    rows = torch.arange(nf, device=dev)
     nref = min(st.scale_reference_frames, reference.num_frames)
-    ref = torch.linspace(0, reference.num_frames - 1, nref).round().long().unique()
+    ref = torch.linspace(0, reference.num_frames - 1, nref, device=dev).round().long().unique()
     half = max(1, math.ceil((reference.num_frames - 1) / max(len(ref) - 1, 1) / 2))
-    idx = torch.arange(nf)
+    idx = torch.arange(nf, device=dev)
     g_est = 1.0
     for _ in range(st.scale_rounds):
         scene = _build_scene(reference, video, g_est, st, gen)
@@ -108,7 +109,9 @@ def estimate_body_scale(
         )
         k = fit.cost.argmin(-1)  # each video frame's best coarse reference frame
         # then every reference frame around it, warm-started from its T
-        local = (ref[k][:, None] + torch.arange(-half, half + 1)).clamp(0, reference.num_frames - 1)
+        local = (ref[k][:, None] + torch.arange(-half, half + 1, device=dev)).clamp(
+            0, reference.num_frames - 1
+        )
         warm = (fit.rotation[idx, k], fit.translation[idx, k])
         fit = _best(
             *_fit_candidates(
@@ -128,7 +131,7 @@ def estimate_body_scale(
             batch,
             fit.rotation[idx, k],
             fit.translation[idx, k],
-            torch.zeros(nf, dtype=st.dtype),
+            torch.zeros(nf, dtype=st.dtype, device=dev),
             st.scale_iterations,
             st.lm_damping,
         )

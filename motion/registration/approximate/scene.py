@@ -33,8 +33,8 @@ from motion.registration.types import (
 )
 
 
-def _unit(v) -> Tensor:
-    v = torch.as_tensor(v, dtype=torch.float64)
+def _unit(v, device: torch.device) -> Tensor:
+    v = torch.as_tensor(v, dtype=torch.float64, device=device)
     return v / v.norm()
 
 
@@ -128,12 +128,19 @@ class _Scene:
     def num_ref(self) -> int:
         return self.landmarks.shape[0]
 
+    @property
+    def device(self) -> torch.device:
+        """Where the scene's tensors (and so every pair fit) live."""
+        return self.landmarks.device
+
 
 def _pair_map(maps: Tensor) -> Tensor:
     """A map ``(..., H, W)`` as one flat entry per pixel holding its value and its right
     neighbour's (the last column repeats itself), viewed as one wider number so that one
     gather reads both: float32 pairs as float64, float64 pairs as complex128."""
-    pairs = torch.empty(*maps.shape, 2, dtype=maps.dtype)  # written in place: no temporaries
+    pairs = torch.empty(
+        *maps.shape, 2, dtype=maps.dtype, device=maps.device
+    )  # written in place: no temporaries
     pairs[..., 0] = maps
     pairs[..., :-1, 1] = maps[..., 1:]
     pairs[..., -1, 1] = maps[..., -1]
@@ -151,7 +158,7 @@ def _pair_maps(make: Callable[[slice], Tensor], frames: int) -> Tensor:
         part = _pair_map(make(slice(lo, min(lo + FRAME_CHUNK, frames))))
         if out is None:
             per_frame = part.numel() // min(FRAME_CHUNK, frames)
-            out = torch.empty(frames * per_frame, dtype=part.dtype)
+            out = torch.empty(frames * per_frame, dtype=part.dtype, device=part.device)
         out[lo * per_frame : lo * per_frame + part.numel()] = part
     return out
 
@@ -178,7 +185,10 @@ def _check_inputs(reference: Reference, video: VideoFeatures, scale: float) -> N
     if not torch.isfinite(sil).all() or sil.min() < 0 or sil.max() > 1:
         raise RegistrationError(f"{video.name}: silhouettes must be finite and in [0, 1]")
     size = video.cameras.size.to(torch.float64)
-    if size.shape != (_c, 2) or (size != torch.tensor([w, h], dtype=torch.float64)).any():
+    if (
+        size.shape != (_c, 2)
+        or (size != torch.tensor([w, h], dtype=torch.float64, device=size.device)).any()
+    ):
         raise RegistrationError(
             f"{video.name}: camera image sizes {size.tolist()} do not match the {w} x {h} "
             "silhouettes"
@@ -214,13 +224,13 @@ def _build_scene(
     # geometry, before the distance maps: their intermediates (float maps of every frame,
     # forward kinematics of every reference frame) then never sit on top of those maps
     rows_any = mask.any(-1)  # (T', C, H)
-    vv = torch.arange(h, dtype=dt)
+    vv = torch.arange(h, dtype=dt, device=sil.device)
     top_v = torch.where(rows_any, vv, torch.full_like(vv, float(h))).amin(-1)
     bottom_v = torch.where(rows_any, vv, torch.full_like(vv, -1.0)).amax(-1)
     height = (bottom_v - top_v + 1).clamp_min(8.0)
     weight = sil * mask
     total = weight.sum((-1, -2)).clamp_min(1e-9)
-    uu = torch.arange(w, dtype=dt)
+    uu = torch.arange(w, dtype=dt, device=sil.device)
     centroid = torch.stack(
         [(weight.sum(-2) * uu).sum(-1) / total, (weight.sum(-1) * vv).sum(-1) / total], -1
     )
@@ -228,7 +238,7 @@ def _build_scene(
     side_clipped = torch.stack([mask[..., :, 0].any(-1), mask[..., :, -1].any(-1)], -1)
     del weight, rows_any
     # the reference's geometry at scale G, every frame
-    frames = torch.arange(reference.num_frames)
+    frames = torch.arange(reference.num_frames, device=reference.rotations.device)
     spec = scaled_spec(reference.spec, scale)
     landmarks = spec.landmarks(reference.body_poses(frames, scale)).to(dt)  # (T, P, 2, 3)
     radii = spec.shapes.radii.to(dt)
@@ -259,7 +269,9 @@ def _build_scene(
     for lo in range(0, tv, FRAME_CHUNK):
         sl = slice(lo, min(lo + FRAME_CHUNK, tv))
         n = sl.stop - sl.start
-        keys = torch.rand(n * c, h * w, generator=generator, dtype=torch.float64)
+        keys = torch.rand(
+            n * c, h * w, generator=generator, dtype=torch.float64, device=mask.device
+        )
         keys = keys.masked_fill_(~mask[sl].reshape(n * c, -1), -1.0)
         top, idx = keys.topk(min(m, h * w), dim=-1)
         tops.append(top)
@@ -282,8 +294,8 @@ def _build_scene(
         keypoints = obs.keypoints[0].to(dt)
         if not torch.isfinite(keypoints).all():
             raise RegistrationError(f"{video.name}: keypoints contain NaN or inf")
-        kp_joints = torch.tensor([names.index(n) for n in video.keypoint_joints])
-    up_b = _unit(settings.reference_up).to(dt)
+        kp_joints = torch.tensor([names.index(n) for n in video.keypoint_joints], device=sil.device)
+    up_b = _unit(settings.reference_up, sil.device).to(dt)
     seg_len = (landmarks[..., 1, :] - landmarks[..., 0, :]).norm(dim=-1)  # (T, P)
     area = (radii.sum(-1)) * seg_len + math.pi / 2 * radii.square().sum(-1)
     centre_b = (area[..., None] * landmarks.mean(-2)).sum(-2) / area.sum(-1, keepdim=True)
@@ -306,7 +318,7 @@ def _build_scene(
     if fwd.norm() < 1e-3:  # camera 0 looks straight down or up: face its x axis
         fwd = rr[0, 0, :] - (rr[0, 0, :] @ up) * up
     fwd = fwd / fwd.norm()
-    f_b = _unit(settings.reference_forward).to(dt)
+    f_b = _unit(settings.reference_forward, sil.device).to(dt)
     f_b = f_b - (f_b @ up_b) * up_b
     if f_b.norm() < 1e-6:
         raise RegistrationError(
@@ -371,7 +383,7 @@ def _build_scene(
     )
     scene.video_rate = float(video.frame_rate)
     if settings.heading_weight > 0:
-        scene.track = torch.full((tv, 3), math.nan, dtype=dt)
+        scene.track = torch.full((tv, 3), math.nan, dtype=dt, device=sil.device)
         root = reference.root.to(dt)
         v_world = _central_velocity(root, reference.frame_rate, settings.heading_window)
         rot = reference.rotations[:, 0].to(dt)  # (T, 3, 3) root to world
@@ -384,7 +396,7 @@ def _central_velocity(x: Tensor, rate: float, window: float) -> Tensor:
     ``window`` seconds (one-sided at the ends). ``(F, 3)`` per second."""
     f = x.shape[0]
     k = max(1, round(window * rate / 2))
-    i = torch.arange(f)
+    i = torch.arange(f, device=x.device)
     lo, hi = (i - k).clamp(min=0), (i + k).clamp(max=f - 1)
     span = (hi - lo).clamp(min=1).to(x.dtype) / rate
     return (x[hi] - x[lo]) / span[:, None]
@@ -407,7 +419,7 @@ def _check_pairs(scene: _Scene, rows, cols) -> tuple[Tensor, Tensor]:
         raise RegistrationError(
             f"rows and cols must be integer frame indices; got {rows.dtype} and {cols.dtype}"
         )
-    rows, cols = rows.long(), cols.long()
+    rows, cols = rows.long().to(scene.device), cols.long().to(scene.device)
     if int(rows.min()) < 0 or int(rows.max()) >= scene.num_video:
         raise RegistrationError(
             f"rows must be video frames in [0, {scene.num_video}); got "
@@ -421,11 +433,19 @@ def _check_pairs(scene: _Scene, rows, cols) -> tuple[Tensor, Tensor]:
     return rows, cols
 
 
-def _generator(generator: torch.Generator | None) -> torch.Generator:
+def _generator(generator: torch.Generator | None, video: VideoFeatures) -> torch.Generator:
+    """``generator``, checked to draw where ``video``'s features are (``None``: seed 0
+    there)."""
+    device = video.observation.silhouette.device
     if generator is None:
-        return torch.Generator().manual_seed(0)
+        return torch.Generator(device=device).manual_seed(0)
     if not isinstance(generator, torch.Generator):
         raise RegistrationError(
             f"generator must be a torch.Generator or None; got {type(generator).__name__}"
+        )
+    if generator.device.type != device.type:
+        raise RegistrationError(
+            f"the generator draws on {generator.device} but the video's features are on "
+            f"{device}: make it with torch.Generator(device=...) of theirs"
         )
     return generator

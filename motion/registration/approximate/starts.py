@@ -77,7 +77,7 @@ def _targets(
         lam0 = z[..., None] * length
         mu = torch.full_like(length, s.settings.depth_prior)
     cam = s.cam_w[rows][:, None, :, None]  # (R, 1, C, 1)
-    eye = torch.eye(3, dtype=dt)
+    eye = torch.eye(3, dtype=dt, device=s.cam_w.device)
     ddt = d[..., :, None] * d[..., None, :]  # (R, W, C, 3, 3)
     proj = eye - ddt
     m = (cam[..., None] * (proj + mu[..., None] * ddt)).sum(2)  # (R, W, 3, 3)
@@ -89,7 +89,7 @@ def _targets(
 
 def _yaw_rotations(scene: _Scene, count: int) -> Tensor:
     """``(count, 3, 3)``: the reference's up onto the world's up, yaws evenly spaced."""
-    yaw = torch.arange(count, dtype=scene.up.dtype) * (2 * math.pi / count)
+    yaw = torch.arange(count, dtype=scene.up.dtype, device=scene.up.device) * (2 * math.pi / count)
     return rotation_vector_to_matrix(scene.up * yaw[:, None]) @ scene.align
 
 

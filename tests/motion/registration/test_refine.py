@@ -89,7 +89,7 @@ def test_placed_reference_is_the_student_and_renders_its_silhouette(student):
 @pytest.mark.parametrize("frames,window,overlap", [(5, 8, 2), (40, 12, 4), (101, 24, 4)])
 def test_windows_cover_every_frame_and_each_frame_has_one_owner_inside_it(frames, window, overlap):
     starts = _window_starts(frames, window, overlap)
-    owner = _owner(frames, starts, window)
+    owner = _owner(frames, starts, window, torch.device("cpu"))
     assert starts[0] == 0 and starts[-1] + min(window, frames) == frames
     assert all(b - a <= window - overlap for a, b in itertools.pairwise(starts))
     t = torch.arange(frames)
