@@ -31,7 +31,7 @@ and by 2 static cameras, prints
 
 Usage: python benchmarks/bench_registration.py [--frames N] [--size W H] [--band W]
        [--particles K] [--iterations N] [--restarts N] [--rounds N] [--repeats N]
-       [--cross-frames N] [--quick] [--json PATH]
+       [--cross-frames N] [--device D] [--quick] [--json PATH]
 
 ``--quick``: 12 frames, 20 particles, 2 iterations, 1 stage-3 round, a band of 8; 8
 cross-performer frames.
@@ -116,13 +116,15 @@ def cross_student(cameras: int, frames: int):
     return features_from_sequence(seq, keypoints=False).cut(slice(0, n))
 
 
-def cross_seconds(reference, video, repeats: int) -> dict[str, float]:
+def cross_seconds(reference, video, repeats: int, device: str = "cpu") -> dict[str, float]:
     """Best of ``repeats`` seconds of each of :data:`CROSS_STAGES` per video frame: ``register``
-    end to end at its defaults (``result.timings`` per stage; total: the whole call)."""
+    end to end at its defaults on ``device`` (``result.timings`` per stage; total: the whole
+    call)."""
     best = dict.fromkeys(CROSS_STAGES, float("inf"))
+    settings = RegistrationSettings(device=device)
     for _ in range(repeats):
         t0 = time.perf_counter()
-        result = register(reference, video, settings=RegistrationSettings())
+        result = register(reference, video, settings=settings)
         total = time.perf_counter() - t0
         t = result.timings
         for stage, value in (
@@ -234,6 +236,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
         default=24,
         help="video frames of the cross-performer case (25 fps, 320 x 240)",
     )
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="where the cross-performer case registers (RegistrationSettings.device: cpu, cuda)",
+    )
     args = parse_args(parser, QUICK, argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -261,7 +268,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cross = []
     for cameras in (1, 2):
         video = cross_student(cameras, args.cross_frames)
-        cross.append((cameras, video.num_frames, cross_seconds(reference, video, args.repeats)))
+        seconds = cross_seconds(reference, video, args.repeats, args.device)
+        cross.append((cameras, video.num_frames, seconds))
 
     w, h = args.size
     print(
@@ -291,7 +299,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cw, ch = CROSS_SYNTH["size"]
     print(
         f"\ncross-performer: CMU 07_01 (subject 7) against the bundled 02_01 (subject 2), "
-        f"{cw} x {ch} at 25 fps, register() at RegistrationSettings() (seed 0); seconds per "
+        f"{cw} x {ch} at 25 fps, register() at RegistrationSettings() (seed 0) on "
+        f"{args.device}; seconds per "
         f"video frame (target: stages 2-3 + polish <= {CROSS_TARGET:g})"
     )
     print("| cameras | frames | " + " | ".join(CROSS_STAGES) + " |")
@@ -320,7 +329,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for cameras, n, sec in cross:
         case = (
             f"cross-performer (CMU 07_01 against 02_01), {n} frames at {cw} x {ch}, "
-            f"{cameras} camera(s), register() at defaults: seconds per video frame"
+            f"{cameras} camera(s), register() at defaults on {args.device}: seconds per video "
+            "frame"
         )
         for stage in CROSS_STAGES:
             anchored = stage == "stages 2-3 + polish"
