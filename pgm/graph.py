@@ -298,14 +298,14 @@ def tree_schedule(groups: Sequence[PairwiseGroup], num_nodes: int) -> TreeSchedu
         if par[node] >= 0:
             kids[par[node]].append(node)
     width = max(1, max(len(c) for c in kids))
-    children = torch.full((v, width), v, dtype=torch.long)
+    children = torch.full((v, width), v, dtype=torch.long, device="cpu")
     slot = [0] * v
     for p, cs in enumerate(kids):
         for s, c in enumerate(cs):
             children[p, s] = c
             slot[c] = s
 
-    level_tensors = [torch.tensor(lv, dtype=torch.long) for lv in levels]
+    level_tensors = [torch.tensor(lv, dtype=torch.long, device="cpu") for lv in levels]
     ops: list[list[LevelOp]] = [[]]
     for d in range(1, len(levels)):
         row_of = {node: i for i, node in enumerate(levels[d - 1])}
@@ -319,7 +319,7 @@ def tree_schedule(groups: Sequence[PairwiseGroup], num_nodes: int) -> TreeSchedu
             )
         level_ops = []
         for (g, child_is_a), rows in sorted(buckets.items()):
-            cols = torch.tensor(rows, dtype=torch.long).T
+            cols = torch.tensor(rows, dtype=torch.long, device="cpu").T
             level_ops.append(LevelOp(g, cols[0], child_is_a, cols[1], cols[2], cols[3], cols[4]))
         ops.append(level_ops)
-    return TreeSchedule(torch.tensor(roots, dtype=torch.long), level_tensors, children, ops)
+    return TreeSchedule(torch.tensor(roots, dtype=torch.long, device="cpu"), level_tensors, children, ops)

@@ -11,6 +11,8 @@ from typing import NamedTuple
 import pytest
 import torch
 
+from motion.body.observation import Observation
+from motion.cameras import CameraRig
 from motion.devices import DeviceError, resolve_device, to_device
 from motion.registration import RegistrationSettings, register
 from motion.registration.approximate import Stage1Settings
@@ -80,6 +82,54 @@ def test_every_tensor_the_stages_make_follows_the_inputs_device(two_views):
     assert probed.G_measured and probed.proportions is not None  # the branches ran
     assert probed.C.device.type == "cpu"
     _same(plain, probed)
+
+
+#: the other side of the branches: one camera (G not measured), a tree of a body graph (no
+#: temporal edges: tree BP's schedule), no re-anchoring, no stage 3, the whole-body T and the
+#: reference's twist off, frames where the person is unseen (carried by their neighbours)
+OTHER_BRANCHES = RegistrationSettings(
+    stage1=BRANCHES.stage1,
+    refine=RefineSettings(
+        particles=12,
+        iterations=1,
+        restarts=1,
+        window=8,
+        overlap=2,
+        temporal=None,
+        reanchor=False,
+        refine_c=False,
+        whole_body_t=False,
+        twist_from_reference=False,
+    ),
+    polish=PosturePolishSettings(steps=3),
+)
+
+
+def test_the_other_branches_follow_the_inputs_device_too(two_views):
+    _, ref, video = two_views
+    one = video.cut(slice(0, 10))
+    obs = one.observation
+    silhouette = obs.silhouette[:, :, :1].clone()
+    silhouette[:, 4:6] = 0.0  # unseen
+    one = dataclasses.replace(
+        one,
+        observation=Observation(silhouette, obs.edge_distance[:, :, :1], obs.image[:, :, :1]),
+        cameras=_first_camera(one.cameras),
+        keypoint_joints=None,
+    )
+    plain = register(ref, one, settings=OTHER_BRANCHES)
+    with UnplacedOnMeta(("motion", "pgm")):
+        probed = register(ref, one, settings=OTHER_BRANCHES)
+    assert probed.notes["unseen_frames"] == "2" and not probed.G_measured
+    for field in ("C", "T_rotation", "T_translation", "A", "fit"):
+        torch.testing.assert_close(getattr(plain, field), getattr(probed, field), rtol=0, atol=0)
+
+
+def _first_camera(rig: CameraRig) -> CameraRig:
+    return dataclasses.replace(
+        rig, K=rig.K[:1], R=rig.R[:1], t=rig.t[:1], dist=rig.dist[:1], size=rig.size[:1],
+        names=rig.names[:1],
+    )  # fmt: skip
 
 
 def test_the_probe_catches_a_tensor_made_off_the_device():
