@@ -92,6 +92,11 @@ class ExperimentConfig(Settings):
             object.__setattr__(self, "out_dir", f"runs/{self.NAME}")
         super().__post_init__()
 
+    def gpus(self) -> int:
+        """GPUs one run of this config holds while it runs (what a cluster backend asks for):
+        none here; a schema with a device setting says 1 where it names ``cuda``."""
+        return 0
+
 
 # ------------------------------------------------------------------------------ overrides
 

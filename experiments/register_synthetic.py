@@ -152,6 +152,9 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "`motion register`'s command line; applied after the fields above",
     )
 
+    def gpus(self) -> int:
+        return int(self.device.startswith("cuda"))
+
 
 @dataclass
 class Truth:

@@ -323,11 +323,10 @@ def _write_combined(out: Path, rows: list[tuple[str, dict]], exp: Experiment) ->
     return combined
 
 
-def _resources(cfg, cpus_per_task: int) -> tuple[int, int]:
-    """(CPUs, GPUs) one run of ``cfg`` asks a cluster for: a GPU where its schema has a
-    ``device`` field set to ``cuda`` (or ``cuda:N``)."""
-    device = str(getattr(cfg, "device", "cpu"))
-    return cpus_per_task, int(device.startswith("cuda"))
+def _resources(cfg: ExperimentConfig, cpus_per_task: int) -> tuple[int, int]:
+    """(CPUs, GPUs) one run of ``cfg`` asks a cluster for: the GPUs its schema declares
+    (:meth:`ExperimentConfig.gpus`)."""
+    return cpus_per_task, cfg.gpus()
 
 
 def run_config(

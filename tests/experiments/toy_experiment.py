@@ -40,6 +40,9 @@ class ToyConfig(ExperimentConfig):
     out_dir: str = setting("runs/toy", "output folder")
     tiny: bool = setting(False, "no effect")
 
+    def gpus(self) -> int:
+        return int(self.device == "cuda")
+
 
 def run(cfg: ToyConfig):
     CALLS[cfg.value] = CALLS.get(cfg.value, 0) + 1
