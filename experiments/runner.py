@@ -40,6 +40,7 @@ from experiments import (
     nbp_ablation,
     nbp_noise_sweep,
     nbp_single_image,
+    polish_basin,
     pose2sim_real,
     register_long,
     register_real,
@@ -129,6 +130,7 @@ EXPERIMENTS = {
         register_real.plot,
         register_real.TIMINGS,
     ),
+    "polish_basin": Experiment(polish_basin.PolishBasinConfig, polish_basin.run, polish_basin.plot),
 }
 
 
