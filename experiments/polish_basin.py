@@ -22,6 +22,7 @@ stays where it starts cannot, whatever its objective's optimum.
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -150,7 +151,7 @@ def plot(path, data, title: str) -> None:
     ax.set_xlabel("RMS error against the true angle after the polish, degrees")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="x")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle("\n".join(textwrap.wrap(title, 80)), fontsize=8)  # a sweep entry's long name
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
