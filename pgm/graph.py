@@ -322,4 +322,6 @@ def tree_schedule(groups: Sequence[PairwiseGroup], num_nodes: int) -> TreeSchedu
             cols = torch.tensor(rows, dtype=torch.long, device="cpu").T
             level_ops.append(LevelOp(g, cols[0], child_is_a, cols[1], cols[2], cols[3], cols[4]))
         ops.append(level_ops)
-    return TreeSchedule(torch.tensor(roots, dtype=torch.long, device="cpu"), level_tensors, children, ops)
+    return TreeSchedule(
+        torch.tensor(roots, dtype=torch.long, device="cpu"), level_tensors, children, ops
+    )

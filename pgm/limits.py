@@ -346,8 +346,8 @@ class LimitedConnection(RigidConnection):
         self._limits_key = (
             self.rotation,
             box.softness,
-            *(t.numpy().tobytes() for t in (box.target, box.half, box.perm, box.sign)),
-            self.rel_rot.to(torch.float64).numpy().tobytes(),
+            *(t.cpu().numpy().tobytes() for t in (box.target, box.half, box.perm, box.sign)),
+            self.rel_rot.to(torch.float64).cpu().numpy().tobytes(),
             self.num_edges,
         )
 

@@ -61,8 +61,9 @@ def _viterbi_candidates(
     ang = relative_angle(rot[:-1, :, None], rot[1:, None, :])  # (T'-1, K, K)
     dp = (p[:-1, :, None] - p[1:, None, :]).norm(dim=-1) / max(body_height, 1e-6)
     table = -weight * (ang.square() + dp.square())
-    result = chain_map(-cost.double()[None], TableFactor(table.double()))
-    return result.assignment[0]
+    # a dynamic programme over small tables: on the CPU, as the time alignments (decision 006)
+    result = chain_map(-cost.double().cpu()[None], TableFactor(table.double().cpu()))
+    return result.assignment[0].to(cost.device)
 
 
 def _final_transforms(scene: _Scene, c_path: Tensor, row_init: Init | None):
@@ -73,6 +74,7 @@ def _final_transforms(scene: _Scene, c_path: Tensor, row_init: Init | None):
     st = dataclasses.replace(scene.settings, edge_weight=scene.settings.final_edge_weight)
     scene.settings = st  # the final fit's own edge weight (see Stage1Settings)
     tv = c_path.shape[0]
+    c_path = c_path.to(scene.device)  # the time alignment's, from the CPU
     rows = torch.arange(tv, device=c_path.device)
     cols = c_path[:, None]
     inits = [] if row_init is None else [_as_pair_init(row_init, rows, cols, st.dtype)]
@@ -134,6 +136,8 @@ def approximate_registration(
     best_p = torch.zeros(tv, 3, dtype=dt, device=scene.device)
 
     def cost_fn(rows: Tensor, cols: Tensor) -> Tensor:
+        # the time alignment asks from the CPU (motion.alignment): the fits run on the scene's
+        rows, cols = rows.to(scene.device), cols.to(scene.device)
         seen = torch.isfinite(best_cost).nonzero().flatten()
         inits = []
         if len(seen):
