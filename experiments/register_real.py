@@ -126,6 +126,11 @@ class RegisterRealConfig(ExperimentConfig):
     polish_steps: int = setting(
         50, "steps of motion register's posture polish (its default: 50; 0: none)", ge=0
     )
+    registration: dict[str, str] = setting(
+        {},
+        "any other setting of motion register by its dotted key (refine.articulation_std: "
+        "0.2), as on its command line; applied after the fields above",
+    )
 
 
 def _data_root(cfg: RegisterRealConfig) -> Path:
@@ -150,6 +155,7 @@ def _overrides(cfg: RegisterRealConfig, width: int) -> tuple[str, ...]:
         f"refine.band={band}",
         f"polish.steps={cfg.polish_steps}",
         f"seed={cfg.seed}",
+        *(f"{key}={value}" for key, value in cfg.registration.items()),
     )
 
 

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from experiments.register_real import LEG_FLEXION, rmse_against
+from experiments.register_real import LEG_FLEXION, RegisterRealConfig, _overrides, rmse_against
 from motion.angles import ClinicalAngles
+from motion.registration.config import load_config
+from motion.settings import ConfigError
 
 
 def test_rmse_against_another_model_splits_off_a_constant_offset():
@@ -41,3 +43,20 @@ def test_rmse_against_another_model_splits_off_a_constant_offset():
     assert out["x_leg_flexion_mean"] == pytest.approx(legs)
     assert out["x_centred_leg_flexion_mean"] == pytest.approx(shape / 2, rel=1e-3)
     assert "x_time" not in out and "x_centred_time" not in out
+
+
+def test_any_register_setting_reaches_the_command_line_after_the_fields():
+    """``registration:`` adds ``motion register`` settings by their dotted keys, after the
+    experiment's own (so they win); the command's parser reads them as a user's."""
+    cfg = RegisterRealConfig(
+        polish_steps=50, registration={"polish.steps": "7", "refine.articulation_std": "0.2"}
+    )
+    overrides = _overrides(cfg, 240)
+    assert overrides[-2:] == ("polish.steps=7", "refine.articulation_std=0.2")
+    settings = load_config(None, list(overrides)).registration
+    assert settings.polish.steps == 7 and settings.refine.articulation_std == 0.2
+    with pytest.raises(ConfigError, match="articulation_sd"):
+        load_config(
+            None,
+            list(_overrides(RegisterRealConfig(registration={"refine.articulation_sd": "1"}), 240)),
+        )
