@@ -66,3 +66,193 @@ class UnplacedOnMeta(TorchFunctionMode):
             if not wraps_tensor:
                 kwargs["device"] = "meta"
         return func(*args, **kwargs)
+
+
+# -- a second device, emulated on the CPU ---------------------------------------------------
+
+META = torch.device("meta")
+
+
+class Mixed(RuntimeError):
+    """A host tensor met a device tensor where a GPU would refuse it."""
+
+
+#: operations where a GPU takes a host tensor beside its own: indexing with host indices,
+#: moving and copying between devices, printing
+MIXING_ALLOWED = frozenset(
+    {
+        torch.Tensor.__getitem__,
+        torch.Tensor.__setitem__,
+        torch.Tensor.to,
+        torch.Tensor.copy_,
+        torch.Tensor.cpu,
+        torch.Tensor.__format__,
+        torch.Tensor.__repr__,
+    }
+)
+
+
+def _tensors(x):
+    if isinstance(x, torch.Tensor):
+        yield x
+    elif isinstance(x, list | tuple):
+        for y in x:
+            yield from _tensors(y)
+    elif isinstance(x, dict):
+        for y in x.values():
+            yield from _tensors(y)
+
+
+def _inside_torch_optim() -> bool:
+    """An optimiser's step: its state follows the gradients, which autograd hands out as
+    plain (host) tensors here; on a GPU they are the GPU's."""
+    frame = sys._getframe(2)
+    for _ in range(4):
+        if frame is None:
+            return False
+        if "/torch/optim/" in frame.f_code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
+
+
+class OnDevice(torch.Tensor):
+    """A CPU tensor that stands for one on the emulated device: its ``device`` reads
+    ``meta`` (so ``torch.zeros(..., device=x.device)`` and ``y.to(x.device)`` make more of
+    them under :class:`EmulatedDevice`), operations on it give ``OnDevice`` results, and an
+    operation that meets a plain (host) tensor of one or more dimensions beside it raises
+    :class:`Mixed`, as a GPU would, except those in :data:`MIXING_ALLOWED`; ``numpy()``
+    raises too."""
+
+    @property
+    def device(self):
+        return META
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func is torch.Tensor.numpy:
+            raise Mixed("numpy() of a device tensor: move it to the CPU first")
+        if func not in MIXING_ALLOWED and not _inside_torch_optim():
+            tensors = [*_tensors(args), *_tensors(kwargs)]
+            if any(type(t) is cls for t in tensors):
+                host = [t for t in tensors if type(t) is not cls and t.dim() > 0]
+                if host:
+                    name = getattr(func, "__name__", str(func))
+                    raise Mixed(
+                        f"{name}: a host tensor of shape {tuple(host[0].shape)} meets a "
+                        "device tensor"
+                    )
+        return super().__torch_function__(func, types, args, kwargs)
+
+
+def _is_meta(a) -> bool:
+    return (isinstance(a, torch.device) and a.type == "meta") or a == "meta"
+
+
+def _is_cpu(a) -> bool:
+    return (isinstance(a, torch.device) and a.type == "cpu") or (
+        isinstance(a, str) and a.startswith("cpu")
+    )
+
+
+def _plain(x):
+    return x.as_subclass(torch.Tensor) if isinstance(x, torch.Tensor) else x
+
+
+class _Placement(TorchFunctionMode):
+    """Factories with ``device=meta`` (an :class:`OnDevice`'s device) make ``OnDevice``
+    tensors on the CPU; with ``device="cpu"`` plain ones (a copy to the host); ``.to``
+    moves between the two kinds as a GPU's would."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = dict(kwargs or {})
+        if func is torch.Tensor.cpu:
+            return func(_plain(args[0]), *args[1:], **kwargs).as_subclass(torch.Tensor)
+        if func is torch.Tensor.to:
+            rest = [*args[1:], *kwargs.values()]
+            onto = any(_is_meta(a) or type(a) is OnDevice for a in rest)
+            home = any(_is_cpu(a) for a in rest)
+            moved = [("cpu" if _is_meta(a) else _plain(a)) for a in args[1:]]
+            kw = {k: ("cpu" if _is_meta(v) else _plain(v)) for k, v in kwargs.items()}
+            out = func(_plain(args[0]), *moved, **kw)
+            stays = type(args[0]) is OnDevice and not home
+            return out.as_subclass(OnDevice if onto or stays else torch.Tensor)
+        device = kwargs.get("device")
+        if func in FACTORIES and device is not None and _is_meta(torch.device(device)):
+            kwargs["device"] = "cpu"
+            grad = kwargs.pop("requires_grad", False)
+            return func(*args, **kwargs).as_subclass(OnDevice).requires_grad_(grad)
+        if func in FACTORIES and device is not None and _is_cpu(torch.device(device)):
+            return func(*map(_plain, args), **kwargs).as_subclass(torch.Tensor)
+        return func(*args, **kwargs)
+
+
+_Generator = torch.Generator
+
+
+class _EmulatedGenerator(_Generator):
+    """``torch.Generator(device=meta)``: the CPU's, reading ``meta`` as its device."""
+
+    def __new__(cls, device="cpu"):
+        emulated = _is_meta(torch.device(device))
+        self = _Generator.__new__(cls, device="cpu" if emulated else device)
+        self.emulated = emulated
+        return self
+
+    def __init__(self, device="cpu"):
+        pass
+
+    @property
+    def device(self):
+        return META if self.emulated else super().device
+
+
+def emulated_to_device(tree, device):
+    """:func:`motion.devices.to_device` for the emulated device: ``meta`` wraps every
+    tensor of ``tree`` as :class:`OnDevice`, ``cpu`` unwraps them."""
+    from motion.devices import to_device
+
+    if _is_meta(torch.device(device)):
+        return _map_tensors(tree, lambda t: t.as_subclass(OnDevice))
+    return _map_tensors(to_device(tree, device), _plain)
+
+
+def _map_tensors(tree, fn):
+    import dataclasses
+
+    if isinstance(tree, torch.Tensor):
+        return fn(tree)
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
+        fields = [f for f in dataclasses.fields(tree) if f.init]
+        return dataclasses.replace(
+            tree, **{f.name: _map_tensors(getattr(tree, f.name), fn) for f in fields}
+        )
+    if isinstance(tree, list):
+        return [_map_tensors(x, fn) for x in tree]
+    if isinstance(tree, tuple):
+        items = [_map_tensors(x, fn) for x in tree]
+        return tuple(items) if type(tree) is tuple else type(tree)(*items)
+    if isinstance(tree, dict):
+        return {k: _map_tensors(v, fn) for k, v in tree.items()}
+    return tree
+
+
+class EmulatedDevice:
+    """Within ``with EmulatedDevice():`` a device named ``meta`` behaves, for placement, like a
+    GPU beside the CPU (:class:`OnDevice`): tensors made for it or derived from it are its,
+    tensors made on the CPU (``device="cpu"``, NumPy, ``.cpu()``) are the host's, and an
+    operation mixing the two fails where a GPU would refuse it. ``torch.Generator(device=
+    meta)`` gives a CPU generator that says ``meta``. Meant for ``register()`` with its
+    device resolved to ``meta`` and :func:`emulated_to_device` as its mover (see
+    ``tests/motion/registration/test_device.py``)."""
+
+    def __enter__(self):
+        self._mode = _Placement()
+        self._mode.__enter__()
+        torch.Generator = _EmulatedGenerator
+        return self
+
+    def __exit__(self, *exc):
+        torch.Generator = _Generator
+        return self._mode.__exit__(*exc)

@@ -113,8 +113,9 @@ class BodySpec:
         return torch.stack([self.parents[order[1:]], order[1:]], 1)
 
     def topological_order(self) -> Tensor:
-        """Parts ordered root first, every parent before its children."""
-        return topological_order(self.parents)
+        """Parts ordered root first, every parent before its children (on the parents'
+        device)."""
+        return topological_order(self.parents).to(self.parents.device)
 
     @classmethod
     def from_motion(

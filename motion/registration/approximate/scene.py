@@ -338,6 +338,7 @@ def _build_scene(
     ).canonical(dt)
     if settings.outline_arc == 0:  # side lines only (they come first)
         outline = outline[:, : 2 * settings.outline_side]
+    interior, outline = interior.to(sil.device), outline.to(sil.device)  # made on the host
 
     def blends(canon):  # (3, S) and (2, S)
         s_ax = canon[0]
