@@ -1,15 +1,18 @@
-"""A CPU stand-in for a second device: tensors created without a device go to ``meta``.
+"""Device placement checked on a machine without a GPU: two CPU stand-ins for a second device.
 
-A stage that runs on the device of its inputs must name ``device=`` in every tensor it
-creates; one that forgets creates on the CPU, which a CUDA run only finds on a GPU (``Expected
-all tensors to be on the same device``). Under :class:`UnplacedOnMeta` such a tensor is put
-on PyTorch's ``meta`` device (shapes, no data) instead, so the first operation mixing it with
-the inputs' CPU tensors, or reading its values, fails on any machine, naming the line.
+A stage that runs on the device of its inputs must place every tensor it makes, and move the
+host's tensors it reads; a slip is found on a GPU only (``Expected all tensors to be on the
+same device``). Two checks find them on any machine (decision 006):
 
-Only factory functions given no ``device`` and called from the code under ``packages`` are
-moved; ``torch.as_tensor`` / ``torch.tensor`` of an existing tensor keeps that tensor's
-device, as it does everywhere. :mod:`pgm` keeps its graph structure (node and edge indices)
-on the CPU by design and is checked on a real GPU by its own CUDA tests.
+* :class:`UnplacedOnMeta` puts a tensor made without ``device=`` (by a factory function called
+  from the code under ``packages``) on PyTorch's ``meta`` device (shapes, no data), so the
+  first operation mixing it with the inputs' CPU tensors, or reading its values, fails,
+  naming the line. ``torch.as_tensor`` / ``torch.tensor`` of an existing tensor keeps that
+  tensor's device, as it does everywhere.
+* :class:`EmulatedDevice` emulates a second device whose tensors (:class:`OnDevice`) hold CPU
+  data but read ``meta`` as their device: what the code makes on the inputs' device is the
+  device's, what it makes on the CPU on purpose (``device="cpu"``, NumPy, ``.cpu()``) the
+  host's, and an operation mixing the two fails where a GPU would refuse it (:class:`Mixed`).
 """
 
 from __future__ import annotations
@@ -20,7 +23,14 @@ from pathlib import Path
 import torch
 from torch.overrides import TorchFunctionMode
 
-__all__ = ["UnplacedOnMeta"]
+__all__ = [
+    "META",
+    "EmulatedDevice",
+    "Mixed",
+    "OnDevice",
+    "UnplacedOnMeta",
+    "emulated_to_device",
+]
 
 #: the factory functions whose device defaults to the CPU
 FACTORIES = frozenset(
@@ -49,8 +59,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 class UnplacedOnMeta(TorchFunctionMode):
     """Within ``with UnplacedOnMeta():`` a factory call without ``device=`` from a file under
-    ``packages`` (folders or ``.py`` files of the repository) creates on ``meta`` (see the module's
-    docstring)."""
+    ``packages`` (folders or ``.py`` files of the repository) creates on ``meta`` (see the
+    module's docstring)."""
 
     def __init__(self, packages: tuple[str, ...] = ("motion",)):
         super().__init__()
