@@ -201,7 +201,9 @@ def _silhouette_targets(
     n, c, h, w = silhouette.shape
     inside = silhouette > 0.5
     view = inside.flatten(2).any(-1)  # (n, C)
-    outside = distance_to_edges(inside.reshape(n * c, 1, h, w)).reshape(n, c, h, w)
+    # OpenCV's exact transform on every device (kornia's, a GPU's default, errs ~13 %)
+    outside = distance_to_edges(inside.reshape(n * c, 1, h, w), backend="opencv")
+    outside = outside.reshape(n, c, h, w)
     if rasterised:
         # a pixel is in the silhouette when its centre is inside the body, so the true
         # outline lies anywhere between the outer pixels' centres and the next pixels' (up

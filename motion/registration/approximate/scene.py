@@ -247,7 +247,9 @@ def _build_scene(
 
     # distance to the nearest silhouette pixel (0 inside); empty images are ignored (cam_w 0)
     def outside(sl: slice) -> Tensor:
-        d = distance_to_edges(mask[sl].reshape(-1, 1, h, w)).reshape(-1, c, h, w).to(dt)
+        # OpenCV's exact transform on every device (kornia's, a GPU's default, errs ~13 %)
+        d = distance_to_edges(mask[sl].reshape(-1, 1, h, w), backend="opencv")
+        d = d.reshape(-1, c, h, w).to(dt)
         return torch.nan_to_num(d, posinf=far)
 
     dout = _pair_maps(outside, tv) if settings.outside_weight > 0 else None

@@ -147,7 +147,7 @@ def test_host_tensors_meet_the_devices_only_where_a_gpu_takes_them(
     the inputs stand for a GPU's tensors, what the code makes on the CPU -- the time
     alignments, graph structure, NumPy -- for the host's, and an operation mixing the two
     fails where a GPU would refuse it) the whole ``register()`` runs, through the code paths
-    meant for a GPU, and on the two-camera case its result is as good as the plain run's.
+    meant for a GPU, and its result is as good as the plain run's.
     This sees what :class:`UnplacedOnMeta` cannot: host tensors made on purpose that reach
     the device's computations without being moved."""
     if case == "branches":
@@ -160,14 +160,9 @@ def test_host_tensors_meet_the_devices_only_where_a_gpu_takes_them(
     with EmulatedDevice():
         emulated = register(ref, video, settings=settings)
     assert type(emulated.C) is torch.Tensor  # handed back to the host
-    # the device's code paths (kornia's distance transform where the CPU's is OpenCV's,
-    # pgm's chunking, the generic chain Viterbi where the CPU's is NumPy's) give a GPU's
-    # result, not the CPU's
-    if case == "branches":
-        _as_good_as(emulated, plain)
-    else:  # one camera, 10 frames, a few particles: too ambiguous to compare two paths
-        assert emulated.C.shape == plain.C.shape and bool((emulated.C.diff() >= 0).all())
-        assert bool(torch.isfinite(emulated.A).all() and torch.isfinite(emulated.fit).all())
+    # the code paths meant for a GPU (pgm's chunking, the generic chain Viterbi where the
+    # CPU's is NumPy's) may break ties and sum in another order: a GPU's result, not the CPU's
+    _as_good_as(emulated, plain)
 
 
 def test_the_emulated_device_refuses_what_a_gpu_refuses():
