@@ -31,7 +31,7 @@ import torch
 
 from experiments.config import ConfigError, ExperimentConfig
 from experiments.progress import note
-from experiments.register_synthetic import synthetic_truth
+from experiments.register_synthetic import RegisterSyntheticConfig, synthetic_truth
 from experiments.stick_time import BUNDLED
 from motion.angles import COORDINATES, SegmentMap, clinical_angles
 from motion.registration.inputs import features_from_sequence
@@ -86,15 +86,16 @@ def range_recovered(estimated: np.ndarray, true: np.ndarray) -> float:
 
 
 def run(cfg: PolishBasinConfig):
+    rendering = RegisterSyntheticConfig()  # the student as register_synthetic renders it
     synth = SynthConfig(
-        fps=25,
+        fps=rendering.fps,
         cameras=cfg.cameras,
-        size=[320, 240],
-        focal_px=450,
-        yaw_deg=30,
-        warp=0.3,
+        size=list(rendering.size),
+        focal_px=rendering.focal_px,
+        yaw_deg=rendering.yaw_deg,
+        warp=rendering.warp,
         seed=cfg.warp_seed,
-    )  # fmt: skip -- register_synthetic's defaults
+    )
     seq = synthesize(cfg.reference, synth, student=cfg.student)
     reference, student = Reference.from_bvh(cfg.reference), Reference.from_bvh(cfg.student)
     if student.skeleton.names != reference.skeleton.names:

@@ -10,11 +10,12 @@ tensors such as a :class:`~motion.registration.types.Reference` -- in one call.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import TypeVar
 
 import torch
 
-__all__ = ["DeviceError", "resolve_device", "to_device"]
+__all__ = ["DeviceError", "map_tensors", "resolve_device", "to_device"]
 
 Tree = TypeVar("Tree")
 
@@ -50,25 +51,28 @@ def resolve_device(name: str | torch.device) -> torch.device:
     return device
 
 
-def to_device(tree: Tree, device: torch.device | str) -> Tree:
-    """``tree`` with every tensor in it on ``device``: tensors, dataclass instances (rebuilt
-    with :func:`dataclasses.replace` from their ``init`` fields), lists, tuples and dicts,
-    to any depth; anything else is returned as it is. Tensors already there are not
-    copied."""
+def map_tensors(tree: Tree, fn: Callable[[torch.Tensor], torch.Tensor]) -> Tree:
+    """``tree`` with ``fn`` applied to every tensor in it: tensors, dataclass instances
+    (rebuilt with :func:`dataclasses.replace` from their ``init`` fields), lists, tuples
+    (named ones too) and dicts, to any depth; anything else is returned as it is."""
     if isinstance(tree, torch.Tensor):
-        return tree.to(device)
+        return fn(tree)
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
-        moved = {
-            f.name: to_device(getattr(tree, f.name), device)
-            for f in dataclasses.fields(tree)
-            if f.init
-        }
-        return dataclasses.replace(tree, **moved)
+        fields = [f for f in dataclasses.fields(tree) if f.init]
+        return dataclasses.replace(
+            tree, **{f.name: map_tensors(getattr(tree, f.name), fn) for f in fields}
+        )
     if isinstance(tree, list):
-        return [to_device(x, device) for x in tree]
+        return [map_tensors(x, fn) for x in tree]
     if isinstance(tree, tuple):
-        items = [to_device(x, device) for x in tree]
+        items = [map_tensors(x, fn) for x in tree]
         return tuple(items) if type(tree) is tuple else type(tree)(*items)  # a NamedTuple
     if isinstance(tree, dict):
-        return {k: to_device(v, device) for k, v in tree.items()}
+        return {k: map_tensors(v, fn) for k, v in tree.items()}
     return tree
+
+
+def to_device(tree: Tree, device: torch.device | str) -> Tree:
+    """``tree`` with every tensor in it on ``device`` (:func:`map_tensors`). Tensors
+    already there are not copied."""
+    return map_tensors(tree, lambda t: t.to(device))

@@ -220,32 +220,12 @@ class _EmulatedGenerator(_Generator):
 
 def emulated_to_device(tree, device):
     """:func:`motion.devices.to_device` for the emulated device: ``meta`` wraps every
-    tensor of ``tree`` as :class:`OnDevice`, ``cpu`` unwraps them."""
-    from motion.devices import to_device
+    tensor of ``tree`` as :class:`OnDevice`, ``cpu`` unwraps them (their data is there)."""
+    from motion.devices import map_tensors
 
     if _is_meta(torch.device(device)):
-        return _map_tensors(tree, lambda t: t.as_subclass(OnDevice))
-    return _map_tensors(to_device(tree, device), _plain)
-
-
-def _map_tensors(tree, fn):
-    import dataclasses
-
-    if isinstance(tree, torch.Tensor):
-        return fn(tree)
-    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
-        fields = [f for f in dataclasses.fields(tree) if f.init]
-        return dataclasses.replace(
-            tree, **{f.name: _map_tensors(getattr(tree, f.name), fn) for f in fields}
-        )
-    if isinstance(tree, list):
-        return [_map_tensors(x, fn) for x in tree]
-    if isinstance(tree, tuple):
-        items = [_map_tensors(x, fn) for x in tree]
-        return tuple(items) if type(tree) is tuple else type(tree)(*items)
-    if isinstance(tree, dict):
-        return {k: _map_tensors(v, fn) for k, v in tree.items()}
-    return tree
+        return map_tensors(tree, lambda t: t.as_subclass(OnDevice))
+    return map_tensors(tree, _plain)
 
 
 class EmulatedDevice:

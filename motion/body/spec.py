@@ -113,9 +113,8 @@ class BodySpec:
         return torch.stack([self.parents[order[1:]], order[1:]], 1)
 
     def topological_order(self) -> Tensor:
-        """Parts ordered root first, every parent before its children (on the parents'
-        device)."""
-        return topological_order(self.parents).to(self.parents.device)
+        """Parts ordered root first, every parent before its children."""
+        return topological_order(self.parents)
 
     @classmethod
     def from_motion(
@@ -203,14 +202,15 @@ def _joint_limits(parts_path: Path, limits) -> dict | None:
 
 def topological_order(parents: Tensor) -> Tensor:
     """``(P,)`` long: parts ordered by their depth in the tree ``parents`` (-1 for the
-    root), root first, every parent before its children."""
+    root), root first, every parent before its children, on ``parents``' device (the depths
+    are counted on the host)."""
     depth = torch.zeros(len(parents), dtype=torch.long, device="cpu")
     for p in range(len(parents)):
         q = int(parents[p])
         while q >= 0:
             depth[p] += 1
             q = int(parents[q])
-    return torch.sort(depth, stable=True).indices
+    return torch.sort(depth, stable=True).indices.to(parents.device)
 
 
 def _chain(skeleton: Skeleton, model: BodyModel, part: dict) -> list[int]:
