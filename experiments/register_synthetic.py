@@ -25,7 +25,9 @@ check_movement` finds the reference's movement, as ``motion register`` reports i
 evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``, ``c_held_fraction``
 (video frames at the ends holding C's first or last reference frame, left out of the check),
 ``student_froude`` and ``reference_froude`` (the gait check's Froude numbers; NaN: not
-measured) and ``student_froude_true`` (from the true root and the student's own legs); ``a_swing_err_deg_mean`` is the articulation error without the
+measured) and ``student_froude_true`` (from the true root and the student's own legs),
+``student_straightness`` and ``reference_straightness`` (the paths' net displacement over
+length: the back-and-forth check) beside ``student_straightness_true`` (the true root's); ``a_swing_err_deg_mean`` is the articulation error without the
 twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
 ``a_swing_err_deg_mean_no_change`` score the anchor "no articulation difference" (A =
 identity) the same way: the size of the true A, what a registration that recovers nothing
@@ -79,6 +81,7 @@ from motion.registration.movement import (
     froude_number,
     leg_length_m,
     net_displacement_m,
+    path_straightness,
 )
 from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
@@ -501,6 +504,9 @@ def run(cfg: RegisterSyntheticConfig):
         "student_froude": movement.student_froude,
         "reference_froude": movement.reference_froude,
         "student_froude_true": _true_froude(student or reference, truth, video.frame_rate),
+        "student_straightness": movement.student_straightness,
+        "reference_straightness": movement.reference_straightness,
+        "student_straightness_true": _true_straightness(truth, video.frame_rate),
         **findings,
         "sec_per_video_frame": seconds / n,
         "sec_stage1": result.timings["stage1"],
@@ -593,6 +599,13 @@ def _true_froude(owner: Reference, truth: Truth, rate: float) -> float:
     segments = SegmentMap.from_roles(owner.skeleton, owner.model.mapping)
     leg = leg_length_m(owner.skeleton, owner.skeleton.offsets, segments)
     return froude_number(speed, leg)
+
+
+def _true_straightness(truth: Truth, rate: float) -> float:
+    """The true root's path straightness over the video, as the movement check measures the
+    registered one's (:func:`motion.registration.movement.path_straightness`)."""
+    window = max(1, round(MovementSettings().path_window_s * rate))
+    return path_straightness(truth.position.double(), window)[0]
 
 
 def proportion_errors(reference: Reference, student: Reference | None, result) -> dict[str, float]:

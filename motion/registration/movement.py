@@ -15,6 +15,16 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   says nothing. A student who stays in place (a jump, a balance) against a walk, or covers
   2.5 times the ground per stride (a run), does not perform it; nor does one who travels
   metres while the matched stretch of the reference stays in place.
+* **Back and forth.** Where the reference travels, the student goes the way it does: the
+  student's path (root positions averaged over ``path_window_s`` windows, which averages a
+  monocular depth estimate's frame-to-frame jitter out) is no less straight -- net
+  displacement over path length -- than ``min_straightness`` times the reference's over the
+  matched stretch. A walker's path on a curve stays straight by this measure (a quarter
+  turn keeps 2 sqrt 2 / pi = 0.90 of its length, a U-turn 2 / pi = 0.64); a registered root
+  that goes back and forth (0.3-0.45 on a basketball dribble against a walk, whose
+  registered depth jumps between postures that do not fit, against 0.94-0.99 for walkers,
+  real ones included) is another movement, or one the registration cannot follow: in
+  either case no finding rests on it.
 * **Stalls.** Where the reference has to advance by two or more frames per video frame
   (its rate over the video's, times the fitted speed), a C that stands still on a fifth of
   the frames is stop-and-go: the chain held on to one posture because none of the next ones
@@ -79,6 +89,7 @@ __all__ = [
     "held_ends",
     "leg_length_m",
     "net_displacement_m",
+    "path_straightness",
 ]
 
 #: m/s^2, for the Froude number
@@ -120,6 +131,20 @@ class MovementSettings(Settings):
         "the displacements compare the mean positions over this many seconds at each end (a "
         "step's sway averaged out)",
         ge=0,
+    )
+    path_window_s: float = setting(
+        0.25,
+        "seconds: the paths' straightness compares root positions averaged over windows "
+        "this long (a monocular depth estimate's frame-to-frame jitter averaged out)",
+        gt=0,
+    )
+    min_straightness: float = setting(
+        0.6,
+        "where the reference travels, the student's path (net displacement over path "
+        "length) is at least this times as straight as the reference's over the matched "
+        "stretch (a U-turn keeps 2 / pi = 0.64 of its length)",
+        gt=0,
+        le=1,
     )
     max_stalled: float = setting(
         0.2,
@@ -210,6 +235,9 @@ class MovementCheck:
             reference frame before (after) the one that matches it, left out of the checks
             (0 when the held frames exceed ``max_held``; then they count as stalls).
         warnings: sentences for the user about the held frames (empty when none).
+        student_straightness, reference_straightness: each root's net displacement over
+            its path length over the compared stretch (:func:`path_straightness`; ``nan``:
+            not measured, the stretch shorter than ``min_compared_s``).
         student_froude, reference_froude: each performer's Froude number over the compared
             stretch at their own clock (``nan``: not measured: no leg lengths given, the
             stretch shorter than ``min_compared_s``, or C standing still).
@@ -227,6 +255,8 @@ class MovementCheck:
     warnings: list[str] = field(default_factory=list)
     student_froude: float = math.nan
     reference_froude: float = math.nan
+    student_straightness: float = math.nan
+    reference_straightness: float = math.nan
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -278,6 +308,18 @@ def net_displacement_m(positions: Tensor, k: int) -> float:
     return float((positions[-k:].mean(0) - positions[:k].mean(0)).norm())
 
 
+def path_straightness(positions: Tensor, window: int) -> tuple[float, float, float]:
+    """``(straightness, net, path)`` of ``(F, 3)`` positions (metres) averaged over
+    consecutive windows of ``window`` rows (a last partial window dropped): the distance
+    between the first and last window means over the summed distances between consecutive
+    ones (1: a straight line; 1 also for a path of no length)."""
+    count = positions.shape[0] // window
+    means = positions[: count * window].reshape(count, window, -1).mean(1)
+    net = float((means[-1] - means[0]).norm()) if count else 0.0
+    path = float((means[1:] - means[:-1]).norm(dim=-1).sum()) if count > 1 else 0.0
+    return (net / path if path > 0 else 1.0), net, path
+
+
 def leg_length_m(skeleton: Skeleton, offsets: Tensor, segments: SegmentMap) -> float:
     """The standing hip height of a body, metres (the Froude number's ``L``): the mean over
     both legs of the hip-to-knee and knee-to-ankle distances of the rest pose of ``offsets``
@@ -327,6 +369,28 @@ def _compare_gaits(
     return froudes, (
         f"{said[1]} but {said[0]}: people walk below {s.walking_froude:g} and run from "
         f"{s.running_froude:g}"
+    )
+
+
+def _compare_paths(
+    student: Tensor, reference: Tensor, window: int, s: MovementSettings
+) -> tuple[tuple[float, float], str]:
+    """The reference's and the student's path straightness (:func:`path_straightness` of
+    ``(n, 3)`` positions over windows of ``window`` video frames), and the sentence saying
+    that the student goes back and forth where the reference travels on ("" otherwise; both
+    must cover at least ``travelling_m``, the reference net, the student along the path)."""
+    ours, net, path = path_straightness(student, window)
+    theirs, reference_net, _ = path_straightness(reference, window)
+    # a student who hardly moves is the travel check's: the jitter of a root in place
+    # makes no path
+    moving = reference_net >= s.travelling_m and path >= s.travelling_m
+    if not moving or ours >= s.min_straightness * theirs:
+        return (theirs, ours), ""
+    return (theirs, ours), (
+        f"the student goes back and forth: {path:.1f} m of path for {net:.1f} m of net "
+        f"travel ({ours:.2f} of it) where the reference travels {reference_net:.1f} m, "
+        f"{theirs:.2f} of its path (the same movement goes at least {s.min_straightness:g} "
+        "times as straight)"
     )
 
 
@@ -408,6 +472,16 @@ def check_movement(
             f"the movement (at least {100 * s.min_pace:.0f} % for the same movement at "
             "another tempo)"
         )
+    straightness = (math.nan, math.nan)
+    window = max(1, round(s.path_window_s * video_rate))
+    if long_enough and n // window >= 3:
+        straightness, reason = _compare_paths(
+            translation.detach().cpu().double(),
+            reference_root.detach().cpu().double()[c] * scale,
+            window,
+            s,
+        )
+        reasons += [reason] if reason else []
     froudes = (math.nan, math.nan)
     if legs_m is not None and long_enough:
         # each performer's net speed at their own clock: the mean positions over the end
@@ -431,4 +505,6 @@ def check_movement(
         warnings=held,
         student_froude=froudes[1],
         reference_froude=froudes[0],
+        student_straightness=straightness[1],
+        reference_straightness=straightness[0],
     )
