@@ -1,7 +1,7 @@
 """The movement check (motion.registration.movement) on constructed registrations whose
 travel and time warp are known: a walker at another tempo matches; a student in place, one
-covering 2.5 times the ground, a stop-and-go C, a racing C and a runner against a walker (by
-the Froude numbers) do not; the verdict does not depend on where the world's origin or axes
+covering 2.5 times the ground, a stop-and-go C, a racing C, a student going back and forth
+and a runner against a walker (by the Froude numbers) do not; the verdict does not depend on where the world's origin or axes
 are."""
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from motion.registration.movement import (
     check_movement,
     held_ends,
     leg_length_m,
+    path_straightness,
 )
 from motion.registration.types import Reference
 from tests.motion.registration.conftest import REFERENCE
@@ -279,3 +280,54 @@ def test_a_student_who_holds_a_posture_while_c_crawls_does_not_match():
     assert _check(c[:20], still[:20], root).motions_match
     half = _warped_c(speed=0.5)
     assert _check(half, root[half], root).motions_match  # a slow walker: a finding
+
+
+def _arc(n: int, radius: float, turn: float) -> torch.Tensor:
+    """``(n, 3)`` a root walking at uniform speed along a circular arc of ``turn`` radians."""
+    theta = turn * torch.arange(n, dtype=F64) / (n - 1)
+    return torch.stack([radius * theta.sin(), 0.9 + 0 * theta, radius * (1 - theta.cos())], -1)
+
+
+@pytest.mark.parametrize("turn, window", [(0.5, 5), (math.pi / 2, 6), (math.pi, 4)])
+def test_path_straightness_of_an_arc_is_its_chord_over_its_polygon(turn, window):
+    """Window means of equally spaced points on a circle lie on a smaller circle, equally
+    spaced ``window * step`` apart: the straightness of ``N`` such segments is the chord over
+    the polygon, sin(N phi / 2) / (N sin(phi / 2)), whatever the radius."""
+    n = 61
+    straightness, net, path = path_straightness(_arc(n, 3.0, turn), window)
+    segments = n // window - 1
+    phi = window * turn / (n - 1)
+    assert straightness == pytest.approx(
+        math.sin(segments * phi / 2) / (segments * math.sin(phi / 2)), rel=1e-9
+    )
+    assert straightness == pytest.approx(net / path)
+    assert path_straightness(_straight(n, 1.0), window)[0] == pytest.approx(1.0)
+    there_and_back = torch.cat([_straight(30, 1.0), _straight(30, 1.0).flip(0)])
+    assert path_straightness(there_and_back, 6)[0] == pytest.approx(0.0, abs=1e-12)
+    assert path_straightness(torch.zeros(10, 3, dtype=F64), 2) == (1.0, 0.0, 0.0)
+
+
+def test_a_student_going_back_and_forth_where_the_reference_travels_does_not_match():
+    """A student covering 0.8 of the walk's ground per stride (inside the travel band) while
+    the registered root swings 0.4 m to and fro across the way at 1.5 Hz (a depth estimate
+    jumping between postures that do not fit): its path is under 0.6 times as straight as
+    the reference's. The same travel without the swing, or walking a quarter circle,
+    matches."""
+    root = _walking_reference()
+    c = _warped_c()
+    t = torch.arange(len(c), dtype=F64) / VIDEO_RATE
+    walker = 0.8 * root[c]
+    swinging = walker.clone()
+    swinging[:, 0] += 0.4 * torch.sin(2 * math.pi * 1.5 * t)
+    result = _check(c, swinging, root)
+    assert not result.motions_match and len(result.reasons) == 1
+    assert result.reasons[0].startswith("the student goes back and forth: ")
+    assert result.student_straightness < 0.6 * result.reference_straightness
+    window = round(MovementSettings().path_window_s * VIDEO_RATE)
+    assert result.student_straightness == pytest.approx(path_straightness(swinging, window)[0])
+    assert _check(c, walker, root).motions_match
+    curve = _arc(len(c), 2.0, math.pi / 2)  # 3.1 m along a quarter circle in 2 s
+    turning = _check(c, curve, root)
+    assert turning.motions_match and 0.85 < turning.student_straightness < 0.95
+    short = _check(c[:20], swinging[:20], root)  # 0.8 s, under min_compared_s: not measured
+    assert short.motions_match and math.isnan(short.student_straightness)
