@@ -21,6 +21,7 @@ from motion.registration.movement import (
     held_ends,
     leg_length_m,
     path_straightness,
+    peak_speed,
 )
 from motion.registration.types import Reference
 from tests.motion.registration.conftest import REFERENCE
@@ -331,3 +332,44 @@ def test_a_student_going_back_and_forth_where_the_reference_travels_does_not_mat
     assert turning.motions_match and 0.85 < turning.student_straightness < 0.95
     short = _check(c[:20], swinging[:20], root)  # 0.8 s, under min_compared_s: not measured
     assert short.motions_match and math.isnan(short.student_straightness)
+
+
+def _run_up(n: int, fast_s: float, fast: float, slow: float) -> torch.Tensor:
+    """``(n, 3)`` a student's root going along +x at ``fast`` m/s for ``fast_s`` seconds, then
+    at ``slow`` m/s (a run-up, then the kick's stop), one row per video frame."""
+    t = torch.arange(n, dtype=F64) / VIDEO_RATE
+    x = torch.where(t <= fast_s, fast * t, fast * fast_s + slow * (t - fast_s))
+    return torch.stack([x, 0.9 + 0 * x, 1.0 + 0 * x], -1)
+
+
+def test_peak_speed_is_the_fastest_windows_net_speed():
+    """3 s at 1 m/s, then 1.5 s at 3 m/s: a 1 s window lies wholly in the fast stretch, where
+    the net speed is exact; times that never advance give no speed."""
+    n = round(4.5 * VIDEO_RATE)
+    positions = _run_up(n, 3.0, 1.0, 3.0)
+    times = torch.arange(n, dtype=F64) / VIDEO_RATE
+    assert peak_speed(positions, times, 25, 3) == pytest.approx(3.0, rel=1e-9)
+    assert peak_speed(positions[:60], times[:60], 25, 3) == pytest.approx(1.0, rel=1e-9)
+    assert math.isnan(peak_speed(positions, torch.zeros(n, dtype=F64), 25, 3))
+
+
+def test_a_run_up_and_stop_against_a_walk_does_not_match_by_the_peak_froude():
+    """A student running 3 m/s for 1.2 s, then all but stopping (0.3 m/s) for 1.8 s, against
+    a walk at 1.2 m/s played at its pace: over the whole stretch a walker's speed and ground
+    (the travel and the whole-stretch gait allow it), but its peak Froude number (0.97 at
+    3 m/s) is a run's while the reference's peak stays a walk's. A walker at 1.6 m/s, then
+    1.2 m/s (a peak of 0.27) matches."""
+    root = _walking_reference(frames=1200)
+    n = 75
+    c = _warped_c(n=n, speed=1.0, start=0)
+    student = _run_up(n, 1.2, 3.0, 0.3)
+    result = _check(c, student, root, legs_m=LEGS)
+    assert not result.motions_match and len(result.reasons) == 1
+    assert result.student_froude < 0.3  # the whole stretch: a walk
+    assert result.reasons[0].startswith("the student runs for 1 s at 3.0 m/s (Froude number 0.97)")
+    assert "the reference never leaves a walk" in result.reasons[0]
+    assert result.student_froude_peak == pytest.approx(_froude(3.0, LEGS[1]), rel=1e-9)
+    assert result.reference_froude_peak < 0.3
+    surge = _check(c, _run_up(n, 1.5, 1.6, 1.2), root, legs_m=LEGS)
+    assert surge.motions_match and 0.25 < surge.student_froude_peak < 0.3
+    assert _check(c, student, root).motions_match  # without the legs: not compared
