@@ -25,7 +25,8 @@ check_movement` finds the reference's movement, as ``motion register`` reports i
 evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``, ``c_held_fraction``
 (video frames at the ends holding C's first or last reference frame, left out of the check),
 ``student_froude`` and ``reference_froude`` (the gait check's Froude numbers; NaN: not
-measured) and ``student_froude_true`` (from the true root and the student's own legs),
+measured; ``..._peak``: the largest over 1 s windows) and ``student_froude_true`` (from
+the true root and the student's own legs),
 ``student_straightness`` and ``reference_straightness`` (the paths' net displacement over
 length: the back-and-forth check) beside ``student_straightness_true`` (the true root's); ``a_swing_err_deg_mean`` is the articulation error without the
 twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
@@ -503,6 +504,8 @@ def run(cfg: RegisterSyntheticConfig):
         "c_held_fraction": (movement.held_start + movement.held_end) / n,
         "student_froude": movement.student_froude,
         "reference_froude": movement.reference_froude,
+        "student_froude_peak": movement.student_froude_peak,
+        "reference_froude_peak": movement.reference_froude_peak,
         "student_froude_true": _true_froude(student or reference, truth, video.frame_rate),
         "student_straightness": movement.student_straightness,
         "reference_straightness": movement.reference_straightness,
