@@ -7,11 +7,23 @@ from pathlib import Path
 import pytest
 import torch
 
-from motion.body.observation import PartShapes, poses_from_segments
+from motion.body.observation import (
+    BodyObservation,
+    Edges,
+    Intensity,
+    Joints2D,
+    NonPenetration,
+    Observation,
+    PartShapes,
+    Silhouette,
+    poses_from_segments,
+)
 from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig
 from motion.kinematics import Skeleton, forward_kinematics, local_rotations
+from motion.render import project_parts, silhouette
+from pgm import SE3
 
 F64 = torch.float64
 WALK = Path(__file__).resolve().parents[3] / "motion" / "data" / "cmu_02_01_walk.bvh"
@@ -83,3 +95,52 @@ def walk():
     )
     fk = forward_kinematics(skeleton, rot, root)
     return skeleton, model, fk, BodySpec.from_motion(skeleton, model, fk)
+
+
+def every_cue_scene():
+    """A scene for every cue with occlusion on: two walk frames seen from the side, their
+    rendered silhouettes, random image, edge distances and 2-D joints, 40 hypotheses per part
+    about the true poses. Returns ``(hypotheses (1, 30, 40, 7), rest poses (1, 30, 7),
+    score)``, ``score(hypotheses, rest, device)`` giving the factor's ``(1, 30, 40)`` log
+    potentials (every input moved to ``device``)."""
+    seg, model = walk_segments([30, 60])
+    poses = poses_from_segments(seg)  # (2, P, 7)
+    shapes = PartShapes.from_segments(seg[0], model.radii)
+    rig = side_camera()
+    sil = torch.stack(
+        [silhouette(project_parts(rig, s, model.radii), 120, 160)[0] for s in seg]
+    ).to(F64)
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(1, 2, 1, 3, 120, 160, generator=g, dtype=F64)
+    dist = 10 * torch.rand(1, 2, 1, 120, 160, generator=g, dtype=F64)
+    keypoints = torch.cat(
+        [
+            100 * torch.rand(1, 2, 1, 30, 2, generator=g, dtype=F64),
+            torch.ones(1, 2, 1, 30, 1, dtype=F64),
+        ],
+        -1,
+    )
+    x = SE3().perturb(poses.reshape(1, 30, 1, 7).expand(1, 30, 40, 7), (0.03, 0.3), g)
+    colours = torch.rand(15, 3, generator=torch.Generator().manual_seed(1), dtype=F64)
+
+    def score(hypotheses, rest, device="cpu"):
+        cues = [
+            Silhouette(),
+            Edges(),
+            Intensity(colours.to(device)),
+            Joints2D(torch.arange(30).reshape(15, 2).to(device)),
+            NonPenetration(torch.eye(15, dtype=torch.bool, device=device)),
+        ]
+        obs = Observation(
+            sil[None, :, None].to(device), dist.to(device), image.to(device), keypoints.to(device)
+        )
+        factor = BodyObservation(
+            PartShapes(shapes.axis.to(device), shapes.radii.to(device)),
+            rig.to(device),
+            obs,
+            cues,
+        )
+        nodes = torch.arange(30, device=device)
+        return factor.log_potential(hypotheses.to(device), nodes, rest.to(device))
+
+    return x, poses.reshape(1, 30, 7), score
