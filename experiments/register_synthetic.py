@@ -526,6 +526,10 @@ def run(cfg: RegisterSyntheticConfig):
         "e3d": e3d.numpy(),
         "silhouette_iou": result.fit.numpy(),
         "trusted": trusted.numpy().astype(int),
+        # the registered and the true root, metres: the movement check's paths, for
+        # rereading the check offline
+        **{f"root_{a}": result.T_translation[:, i].numpy() for i, a in enumerate("xyz")},
+        **{f"root_true_{a}": truth.position[:, i].numpy() for i, a in enumerate("xyz")},
         **angle_columns(angles, truth_diff[:, keep]),
     }
     joint_names = [reference.skeleton.names[j] for j in driven]
