@@ -244,7 +244,7 @@ class MovementCheck:
         warnings: sentences for the user about the held frames (empty when none).
         student_straightness, reference_straightness: each root's net displacement over
             its path length over the compared stretch (:func:`path_straightness`; ``nan``:
-            not measured, the stretch shorter than ``min_compared_s``).
+            not measured, the stretch shorter than ``min_compared_s`` or than 3 windows).
         student_froude, reference_froude: each performer's Froude number over the compared
             stretch at their own clock (``nan``: not measured: no leg lengths given, the
             stretch shorter than ``min_compared_s``, or C standing still).
@@ -366,15 +366,17 @@ def peak_speed(positions: Tensor, times_s: Tensor, window: int, ends: int) -> fl
     windows of ``window`` rows, half a window apart: each window's distance between the means
     of its first and last ``ends`` rows over the time between their mean times (windows whose
     time does not advance are skipped; ``nan`` when none is left)."""
+    if positions.shape[0] < window:
+        return math.nan
     hop = max(1, window // 2)
-    best = math.nan
-    for start in range(0, positions.shape[0] - window + 1, hop):
-        head, tail = slice(start, start + ends), slice(start + window - ends, start + window)
-        elapsed = float(times_s[tail].mean() - times_s[head].mean())
-        if elapsed > 0:
-            speed = float((positions[tail].mean(0) - positions[head].mean(0)).norm()) / elapsed
-            best = speed if math.isnan(best) else max(best, speed)
-    return best
+    places = positions.unfold(0, window, hop)  # (W, 3, window)
+    times = times_s.unfold(0, window, hop)  # (W, window)
+    moved = (places[..., -ends:].mean(-1) - places[..., :ends].mean(-1)).norm(dim=-1)
+    elapsed = times[:, -ends:].mean(-1) - times[:, :ends].mean(-1)
+    advancing = elapsed > 0
+    if not bool(advancing.any()):
+        return math.nan
+    return float((moved[advancing] / elapsed[advancing]).max())
 
 
 def _compare_peaks(
@@ -449,7 +451,6 @@ def _gait_check(
     translation: Tensor,
     reference_root: Tensor,
     rates: tuple[float, float],
-    scale: float,
     legs_m: tuple[float, float],
     s: MovementSettings,
 ) -> tuple[tuple[float, float], tuple[float, float], str]:
@@ -576,7 +577,7 @@ def check_movement(
     froudes = peak_froudes = (math.nan, math.nan)
     if legs_m is not None and long_enough:
         froudes, peak_froudes, reason = _gait_check(
-            c, translation, reference_root, (reference_rate, video_rate), scale, legs_m, s
+            c, translation, reference_root, (reference_rate, video_rate), legs_m, s
         )
         reasons += [reason] if reason else []
     return MovementCheck(
