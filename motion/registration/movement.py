@@ -63,7 +63,7 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   each performer's *peak* Froude number, the largest over windows of ``min_compared_s``
   (half a window apart), says whether it runs at all; one that runs somewhere (a peak at or
   above ``running_froude``) against one that never leaves a walk (a peak below
-  ``walking_froude``) is a walk against a run too. Walkers' registered peaks read 0.14-0.30,
+  ``walking_froude``) is a walk against a run too. Walkers' registered peaks read 0.14-0.32,
   real ones included (subject 7's brisk walk peaks at 0.34 in truth: between the two, no
   verdict); a run-up and kick (CMU 10_03), 0.59.
 
