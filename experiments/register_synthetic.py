@@ -26,10 +26,11 @@ evidence ``travel_ratio``, ``c_stalled_fraction``, ``c_fast_fraction``, ``c_held
 (video frames at the ends holding C's first or last reference frame, left out of the check),
 ``student_froude`` and ``reference_froude`` (the gait check's Froude numbers; NaN: not
 measured; ``..._peak``: the largest over 1 s windows) and ``student_froude_true`` (from
-the true root and the student's own legs),
-``student_straightness`` and ``reference_straightness`` (the paths' net displacement over
-length: the back-and-forth check) beside ``student_straightness_true`` (the true root's); ``a_swing_err_deg_mean`` is the articulation error without the
-twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
+the true root and the student's own legs), ``student_straightness`` and
+``reference_straightness`` (the paths' net displacement over length: the back-and-forth
+check) beside ``student_straightness_true`` (the true root's; per_frame.csv carries the
+registered and the true root, ``root_x`` ... ``root_true_z``, to reread the checks offline);
+``a_swing_err_deg_mean`` is the articulation error without the twist about each bone (what a capsule body can show); ``a_err_deg_mean_no_change`` and
 ``a_swing_err_deg_mean_no_change`` score the anchor "no articulation difference" (A =
 identity) the same way: the size of the true A, what a registration that recovers nothing
 of it scores; ``a_err_deg_mean_long_bones`` (and ``_no_change``) the same over the joints
