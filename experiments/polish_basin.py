@@ -65,6 +65,12 @@ class PolishBasinConfig(ExperimentConfig):
     articulation_deg: float = setting(
         20.0, "the polish's articulation prior, degrees (motion register's default: 20)", gt=0
     )
+    lr: float = setting(
+        0.02, "the polish's Adam step size (motion register's default: 0.02)", gt=0, le=1
+    )
+    smooth_deg: float = setting(
+        3.0, "the polish's frame-to-frame smoothness, degrees (motion register's default: 3)", gt=0
+    )
     warp_seed: int = setting(0, "seed of the synthetic student's time warp", ge=0)
 
 
@@ -111,7 +117,12 @@ def run(cfg: PolishBasinConfig):
     c, local, position = truth.C[:n], truth.local[:n], truth.position[:n]
     none = reference.rotations[c].clone()
     none[:, 0] = local[:, 0]  # the true T
-    settings = PosturePolishSettings(steps=cfg.steps, articulation_deg=cfg.articulation_deg)
+    settings = PosturePolishSettings(
+        steps=cfg.steps,
+        articulation_deg=cfg.articulation_deg,
+        lr=cfg.lr,
+        smooth_deg=cfg.smooth_deg,
+    )
     true_angles = _angles(reference, local)
     reference_angles = _angles(reference, reference.rotations[c])
     true_extra = _extra_range(true_angles, reference_angles)
