@@ -454,11 +454,13 @@ def _gait_check(
     rates: tuple[float, float],
     legs_m: tuple[float, float],
     s: MovementSettings,
+    seen: slice,
 ) -> tuple[tuple[float, float], tuple[float, float], str]:
     """The gait check on the compared stretch (``c`` ``(n,)``, the student's ``translation``
     ``(n, 3)``): the reference's and the student's Froude numbers over the whole stretch and
-    at their peaks (:func:`peak_speed`), and the sentence saying that one walks and the other
-    runs ("" when neither comparison says so; the whole stretch's said first)."""
+    at their peaks (:func:`peak_speed`, over the ``seen`` frames only), and the sentence
+    saying that one walks and the other runs ("" when neither comparison says so; the whole
+    stretch's said first)."""
     reference_rate, video_rate = rates
     k = max(1, round(s.end_window_s * video_rate))
     n = c.shape[0]
@@ -476,15 +478,28 @@ def _gait_check(
         )
         froudes, reason = _compare_gaits(speeds, legs_m, s)
     window = round(s.min_compared_s * video_rate)
+    frames = torch.arange(n, dtype=torch.float64)[seen]
     peaks = (
-        peak_speed(reference, c.double() / reference_rate, window, k),
-        peak_speed(student, torch.arange(n, dtype=torch.float64) / video_rate, window, k),
+        peak_speed(reference[seen], c[seen].double() / reference_rate, window, k),
+        peak_speed(student[seen], frames / video_rate, window, k),
     )
     peak_froudes = (math.nan, math.nan)
     if not any(math.isnan(p) for p in peaks):
         peak_froudes, peak_reason = _compare_peaks(peaks, legs_m, s)
         reason = reason or peak_reason
     return froudes, peak_froudes, reason
+
+
+def _seen_stretch(in_view: Tensor | None, core: slice, n: int) -> slice:
+    """The frames of the compared stretch (``core`` of the video, ``n`` frames long) from its
+    first to its last frame ``in_view`` (``(T',)`` bool; ``None``: all of it); an empty
+    slice when none is."""
+    if in_view is None:
+        return slice(0, n)
+    seen = in_view.to(torch.bool).cpu()[core].nonzero().flatten()
+    if len(seen) == 0:
+        return slice(0, 0)
+    return slice(int(seen[0]), int(seen[-1]) + 1)
 
 
 def check_movement(
@@ -496,6 +511,7 @@ def check_movement(
     scale: float,
     settings: MovementSettings | None = None,
     legs_m: tuple[float, float] | None = None,
+    in_view: Tensor | None = None,
 ) -> MovementCheck:
     """Decide whether the student performs the reference's movement (module docstring).
 
@@ -508,6 +524,10 @@ def check_movement(
         settings: :class:`MovementSettings` (defaults otherwise).
         legs_m: the reference's and the student's standing hip heights, metres
             (:func:`leg_length_m`; ``None``: the gait is not compared).
+        in_view: ``(T',)`` bool, the video frames where the registered body is wholly in
+            view (``None``: all). The path's straightness and the peak gait read the root
+            only between the first and the last of them: a body cut by the image's edge
+            (walking out of it) has its depth placed poorly, and its root swings metres.
 
     Returns:
         :class:`MovementCheck`.
@@ -565,12 +585,14 @@ def check_movement(
             f"the movement (at least {100 * s.min_pace:.0f} % for the same movement at "
             "another tempo)"
         )
+    seen = _seen_stretch(in_view, core, n)
+    seen_long_enough = (seen.stop - seen.start - k) / video_rate >= s.min_compared_s
     straightness = (math.nan, math.nan)
     window = max(1, round(s.path_window_s * video_rate))
-    if long_enough and n // window >= 3:
+    if seen_long_enough and (seen.stop - seen.start) // window >= 3:
         straightness, reason = _compare_paths(
-            translation.detach().cpu().double(),
-            reference_root.detach().cpu().double()[c] * scale,
+            translation[seen].detach().cpu().double(),
+            reference_root.detach().cpu().double()[c[seen]] * scale,
             window,
             s,
         )
@@ -578,7 +600,7 @@ def check_movement(
     froudes = peak_froudes = (math.nan, math.nan)
     if legs_m is not None and long_enough:
         froudes, peak_froudes, reason = _gait_check(
-            c, translation, reference_root, (reference_rate, video_rate), legs_m, s
+            c, translation, reference_root, (reference_rate, video_rate), legs_m, s, seen
         )
         reasons += [reason] if reason else []
     return MovementCheck(

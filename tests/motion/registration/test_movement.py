@@ -373,3 +373,23 @@ def test_a_run_up_and_stop_against_a_walk_does_not_match_by_the_peak_froude():
     surge = _check(c, _run_up(n, 1.5, 1.6, 1.2), root, legs_m=LEGS)
     assert surge.motions_match and 0.25 < surge.student_froude_peak < 0.3
     assert _check(c, student, root).motions_match  # without the legs: not compared
+
+
+def test_a_root_that_swings_after_the_body_leaves_the_view_is_not_read():
+    """A walker whose registered root swings 2 m to and fro over the last 0.8 s, where the
+    body is cut by the image's edge (a monocular depth placed on half a body): read there,
+    the path is refused; read where the whole body is in view, it is the walk's."""
+    root = _walking_reference()
+    c = _warped_c(n=75, speed=1.0, start=0)
+    walker = root[c].clone()
+    t = torch.arange(20, dtype=F64) / VIDEO_RATE
+    walker[55:, 0] += 2.0 * torch.sin(2 * math.pi * 2.5 * t)
+    in_view = torch.arange(75) < 55
+    assert not _check(c, walker, root, legs_m=LEGS).motions_match
+    seen = check_movement(
+        c, walker, root, REF_RATE, VIDEO_RATE, 1.0, MovementSettings(), LEGS, in_view
+    )
+    assert seen.motions_match and seen.student_straightness > 0.95
+    none = torch.zeros(75, dtype=torch.bool)  # never wholly in view: the path is not read
+    blind = check_movement(c, walker, root, REF_RATE, VIDEO_RATE, 1.0, None, LEGS, none)
+    assert math.isnan(blind.student_straightness) and math.isnan(blind.student_froude_peak)
