@@ -393,3 +393,25 @@ def test_a_root_that_swings_after_the_body_leaves_the_view_is_not_read():
     none = torch.zeros(75, dtype=torch.bool)  # never wholly in view: the path is not read
     blind = check_movement(c, walker, root, REF_RATE, VIDEO_RATE, 1.0, None, LEGS, none)
     assert math.isnan(blind.student_straightness) and math.isnan(blind.student_froude_peak)
+
+
+def test_a_person_is_wholly_in_view_where_a_silhouette_is_off_the_images_border():
+    """Per frame: empty in both cameras, cut by the left edge in one and the bottom in the
+    other, cut in one but whole in the other, whole in one and empty in the other."""
+    from motion.body.observation import Observation
+    from motion.cameras import CameraRig
+    from motion.registration.types import VideoFeatures
+    from motion.registration.video import default_camera
+
+    one = default_camera(40, 30)
+    rig = CameraRig(
+        *(torch.cat([a, a]) for a in (one.K, one.R, one.t, one.dist, one.size)), ["a", "b"]
+    )
+    sil = torch.zeros(1, 4, 2, 30, 40, dtype=F64)
+    sil[0, 1, 0, 10:20, 0:5] = 1  # touches the left edge
+    sil[0, 1, 1, 20:30, 10:20] = 1  # touches the bottom
+    sil[0, 2, 0, 10:20, 35:40] = 1  # touches the right edge ...
+    sil[0, 2, 1, 5:25, 10:20] = 1  # ... but whole in the other camera
+    sil[0, 3, 0, 1:29, 1:39] = 1  # whole, a pixel from every edge
+    video = VideoFeatures(Observation(sil), rig, VIDEO_RATE)
+    assert video.whole_in_view().tolist() == [False, False, True, True]
