@@ -278,7 +278,7 @@ def _write_outputs(
         reg.G,
         cfg.movement,
         legs_m=leg_lengths_m(reg, reference),
-        in_view=video.features.whole_in_view(),
+        in_view=video.features.within_sides(),
     )
     # a frame is trusted where its fit is good, the coordinate's bones are in view, and the
     # reference has a counterpart (not an end held at C's first or last reference frame)

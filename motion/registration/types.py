@@ -327,17 +327,14 @@ class VideoFeatures:
         """``(T',)`` bool: frames where some camera's silhouette has a pixel."""
         return (self.observation.silhouette[0] > 0.5).flatten(1).any(1)
 
-    def whole_in_view(self) -> Tensor:
+    def within_sides(self) -> Tensor:
         """``(T',)`` bool: frames where some camera's silhouette has a pixel and none on the
-        image's border (the person whole in that image, not cut by its edge)."""
+        image's left or right edge: the person has not begun to enter or leave that image.
+        (Feet or head cut by the bottom or top edge is a framing that the rest of the body
+        still places.)"""
         inside = self.observation.silhouette[0] > 0.5  # (T', C, H, W)
-        border = (
-            inside[..., 0, :].any(-1)
-            | inside[..., -1, :].any(-1)
-            | inside[..., :, 0].any(-1)
-            | inside[..., :, -1].any(-1)
-        )
-        return (inside.flatten(2).any(-1) & ~border).any(-1).cpu()
+        sides = inside[..., :, 0].any(-1) | inside[..., :, -1].any(-1)
+        return (inside.flatten(2).any(-1) & ~sides).any(-1).cpu()
 
     def cut(self, frames: slice | Tensor) -> VideoFeatures:
         """The same video restricted to ``frames`` (a slice, or ``(N,)`` long indices)."""
