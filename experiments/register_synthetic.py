@@ -79,7 +79,6 @@ from motion.registration.export import (
     TRUSTED_FIT,
     joint_angles,
     leg_lengths_m,
-    student_kinematics,
     summarise,
 )
 from motion.registration.inputs import features_from_sequence
@@ -94,7 +93,6 @@ from motion.registration.movement import (
 from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
 from motion.registration.refine import RefineSettings, place_poses
-from motion.registration.render import points_in_view
 from motion.registration.types import paired_part, scaled_spec
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
@@ -461,9 +459,7 @@ def run(cfg: RegisterSyntheticConfig):
         video.frame_rate,
         result.G,
         legs_m=leg_lengths_m(result, reference),
-        in_view=points_in_view(video.cameras, student_kinematics(result, reference).positions).all(
-            -1
-        ),
+        in_view=video.within_sides(),
     )
     angles = joint_angles(result, reference, video.frame_rate)
     trusted = (result.fit >= TRUSTED_FIT) & ~movement.held(result.num_frames)

@@ -24,11 +24,11 @@ movement performed by two people, with its threshold in :class:`MovementSettings
   that goes back and forth (0.3-0.45 on a basketball dribble against a walk, whose
   registered depth jumps between postures that do not fit, against 0.94-0.99 for walkers,
   real ones included) is another movement, or one the registration cannot follow: in
-  either case no finding rests on it. The path is read only where the person is wholly in
-  view, the silhouette off the image's border (``check_movement``'s ``in_view``): a walker
-  leaving the image, cut by its edge, has its depth placed on half a body, and the bundled
-  demo's registered root swung 4 m in depth over its last 10 frames (0.43 as straight,
-  read over the whole video).
+  either case no finding rests on it. The path is read only where the person is in view,
+  not entering or leaving it (the silhouette off the image's left and right edges:
+  ``check_movement``'s ``in_view``): a walker leaving the image has its depth placed on half
+  a body, and the bundled demo's registered root swung 4 m in depth over its last 10 frames
+  (0.43 as straight, read over the whole video).
 * **Stalls.** Where the reference has to advance by two or more frames per video frame
   (its rate over the video's, times the fitted speed), a C that stands still on a fifth of
   the frames is stop-and-go: the chain held on to one posture because none of the next ones
@@ -528,12 +528,12 @@ def check_movement(
         settings: :class:`MovementSettings` (defaults otherwise).
         legs_m: the reference's and the student's standing hip heights, metres
             (:func:`leg_length_m`; ``None``: the gait is not compared).
-        in_view: ``(T',)`` bool, the video frames where the person is wholly in some
-            camera's image (its silhouette off the border: :meth:`~motion.registration.
-            types.VideoFeatures.whole_in_view`; ``None``: all). The path's straightness and
-            the peak gait read the root only between the first and the last of them: a body
-            cut by the image's edge (walking out of it) has its depth placed poorly, and its
-            root swings metres.
+        in_view: ``(T',)`` bool, the video frames where the person is in some camera's
+            image, not entering or leaving it (its silhouette off the left and right edges:
+            :meth:`~motion.registration.types.VideoFeatures.within_sides`; ``None``: all).
+            The path's straightness and the peak gait read the root only between the first
+            and the last of them: half a body at the image's side has its depth placed
+            poorly, and its root swings metres.
 
     Returns:
         :class:`MovementCheck`.
