@@ -453,23 +453,21 @@ def _compare_paths(
 
 def _gait_check(
     c: Tensor,
-    translation: Tensor,
-    reference_root: Tensor,
+    student: Tensor,
+    reference: Tensor,
     rates: tuple[float, float],
     legs_m: tuple[float, float],
     s: MovementSettings,
     seen: slice,
 ) -> tuple[tuple[float, float], tuple[float, float], str]:
-    """The gait check on the compared stretch (``c`` ``(n,)``, the student's ``translation``
-    ``(n, 3)``): the reference's and the student's Froude numbers over the whole stretch and
+    """The gait check on the compared stretch (``c`` ``(n,)``, the student's root ``student``
+    and the reference's at C ``reference``, ``(n, 3)`` float64 metres on the host): the reference's and the student's Froude numbers over the whole stretch and
     at their peaks (:func:`peak_speed`, over the ``seen`` frames only), and the sentence
     saying that one walks and the other runs ("" when neither comparison says so; the whole
     stretch's said first)."""
     reference_rate, video_rate = rates
     k = max(1, round(s.end_window_s * video_rate))
     n = c.shape[0]
-    student = translation.detach().cpu().double()
-    reference = reference_root.detach().cpu().double()[c]  # the reference's own size
     # each performer's net speed at their own clock: the mean positions over the end
     # windows lie (n - k) video frames apart for the student, and the reference frames C
     # matches to those windows apart for the reference
@@ -554,8 +552,10 @@ def check_movement(
     slope = float(np.polyfit(np.arange(n, dtype=np.float64), c.numpy().astype(np.float64), 1)[0])
     speed = slope * video_rate / reference_rate
     k = max(1, round(s.end_window_s * video_rate))
-    student = net_displacement_m(translation.detach().cpu().double(), k)
-    ref = net_displacement_m(reference_root.detach().cpu().double()[c], k) * scale
+    student_path = translation.detach().cpu().double()
+    reference_path = reference_root.detach().cpu().double()[c]  # the reference's own size
+    student = net_displacement_m(student_path, k)
+    ref = net_displacement_m(reference_path, k) * scale
     reasons = []
     travelling = max(student, ref) >= s.travelling_m
     apart = abs(student - ref) > s.min_travel_difference_m
@@ -597,8 +597,8 @@ def check_movement(
     window = max(1, round(s.path_window_s * video_rate))
     if seen_long_enough and (seen.stop - seen.start) // window >= 3:
         straightness, reason = _compare_paths(
-            translation[seen].detach().cpu().double(),
-            reference_root.detach().cpu().double()[c[seen]] * scale,
+            student_path[seen],
+            reference_path[seen] * scale,
             window,
             s,
         )
@@ -606,7 +606,7 @@ def check_movement(
     froudes = peak_froudes = (math.nan, math.nan)
     if legs_m is not None and long_enough:
         froudes, peak_froudes, reason = _gait_check(
-            c, translation, reference_root, (reference_rate, video_rate), legs_m, s, seen
+            c, student_path, reference_path, (reference_rate, video_rate), legs_m, s, seen
         )
         reasons += [reason] if reason else []
     return MovementCheck(

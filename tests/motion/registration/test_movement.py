@@ -12,6 +12,8 @@ import pytest
 import torch
 
 from motion.angles import SegmentMap
+from motion.body.observation import Observation
+from motion.cameras import CameraRig
 from motion.kinematics import forward_kinematics
 from motion.registration.movement import (
     GRAVITY,
@@ -23,7 +25,8 @@ from motion.registration.movement import (
     path_straightness,
     peak_speed,
 )
-from motion.registration.types import Reference
+from motion.registration.types import Reference, VideoFeatures
+from motion.registration.video import default_camera
 from tests.motion.registration.conftest import REFERENCE
 
 REF_RATE, VIDEO_RATE = 120.0, 25.0
@@ -399,11 +402,6 @@ def test_a_person_is_within_the_sides_where_a_silhouette_is_off_the_left_and_rig
     """Per frame: empty in both cameras; cut by the left edge in one and empty in the other;
     cut by the right edge in one but off both sides in the other; cut only by the bottom
     (feet out of the frame: a framing, still read)."""
-    from motion.body.observation import Observation
-    from motion.cameras import CameraRig
-    from motion.registration.types import VideoFeatures
-    from motion.registration.video import default_camera
-
     one = default_camera(40, 30)
     rig = CameraRig(
         *(torch.cat([a, a]) for a in (one.K, one.R, one.t, one.dist, one.size)), ["a", "b"]
