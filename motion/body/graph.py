@@ -90,7 +90,13 @@ class Connections:
 @dataclass(frozen=True)
 class Temporal:
     """Temporal edges: part p of frame t to part p of frame t + 1 (no offset), a Gaussian of
-    ``pos_std`` metres on the position and a rotation kernel of ``rot_std`` radians."""
+    ``pos_std`` metres on the position and a rotation kernel of ``rot_std`` radians.
+
+    Attributes:
+        pos_std: metres, how far a part may move from one frame to the next (a random walk:
+            no velocity is assumed).
+        rot_std: radians, how far a part may turn from one frame to the next.
+    """
 
     pos_std: float = 0.05
     rot_std: float = 0.3
