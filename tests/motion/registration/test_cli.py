@@ -135,7 +135,13 @@ def test_each_meaning_is_the_settings_own_or_its_docstring_entry():
     assert _comments_above(text, named["refine.connection.pos_std"]) == (
         "metres, the joints' spread before annealing"
     )
-    assert "a Gaussian of pos_std metres" in _comments_above(text, named["refine.temporal.pos_std"])
+    assert _comments_above(text, named["refine.temporal.pos_std"]) == (
+        "metres, how far a part may move from one frame to the next (a random walk: no "
+        "velocity is assumed)"
+    )
+    assert _comments_above(text, named["refine.temporal.rot_std"]) == (
+        "radians, how far a part may turn from one frame to the next"
+    )
     # a group names the class that documents it
     assert "motion.registration.refine.RefineSettings" in _comments_above(text, "refine:")
 
