@@ -271,7 +271,8 @@ class RefineSettings(Settings):
         "seconds, the standard deviation of a Gaussian in time by which the final "
         "articulation A (each joint's rotation relative to the reference's at C), T's "
         "rotation (relative to the reference root's at C, so the reference's own pelvis swing "
-        "is kept) and T's translation are smoothed (motion.smoothing); 0 leaves each frame's "
+        "is kept) and T's translation are smoothed (motion.smoothing, a local linear fit: the "
+        "ends keep their trend); 0 leaves each frame's "
         "particle BP estimate as it is. Each window and frame is solved with a finite set of "
         "particles, so its posture carries a few degrees of sampling noise from frame to frame "
         "that the student's movement does not have; 0.1 s keeps changes slower than about 2 Hz "
@@ -617,7 +618,8 @@ def _fit_weights(problem: _Problem, unit: Tensor, body: Tensor) -> float | Tenso
     axis = axis.expand(*unit.shape[:-2], -1, -1)  # (T', E, 3)
     rel = qmul(qconj(relative_rotations(spec, body.to(unit))), relative_rotations(spec, unit))
     dev = qrotate(rel, axis) - axis  # the swing's chord, in the reference joint's frame
-    dev = smooth_values(dev, s.smooth_s * problem.video.frame_rate)
+    # a level, not a trend: nothing to extrapolate at the ends
+    dev = smooth_values(dev, s.smooth_s * problem.video.frame_rate, fit="constant")
     swing = 2 * torch.asin((dev.norm(dim=-1) / 2).clamp(max=1.0))  # (T', E) radians
     narrow, wide = s.articulation_std, s.articulation_outlier_std
     # 2-D Gaussians of the swing: log N = -a^2 / (2 s^2) - 2 log s (+ a shared constant)
@@ -862,7 +864,9 @@ def smooth_posture(
     """A registered posture smoothed in time, in the reference's terms: each joint's
     articulation ``A = B_C^T R`` and the root's rotation relative to the reference root's
     at C (``T B_C,root^T``) smoothed as rotations, the root position as values, by a
-    Gaussian of ``sigma`` video frames (:mod:`motion.smoothing`). ``c`` ``(T',)``,
+    Gaussian of ``sigma`` video frames (:mod:`motion.smoothing`), each a local linear fit: a
+    root moving through the video keeps its speed to the first and last frames, where a
+    weighted mean would pull them toward the inside. ``c`` ``(T',)``,
     ``rotations`` ``(T', J, 3, 3)`` local, ``translation`` ``(T', 3)`` -> the same shapes;
     joints equal to the reference's at C stay so (to rounding)."""
     ref = reference.rotations[c].to(rotations)  # (T', J, 3, 3)

@@ -287,7 +287,7 @@ def test_another_movement_is_said_first_and_no_difference_is_stated(movement, tm
     summary, the printed lines and the report say first that the movements differ, and no
     joint difference is stated (they stay in summary.json with stated false and why). The
     jog covers no more ground per stride than a long-striding walker: its gait (the Froude
-    numbers) tells it apart."""
+    numbers, over the whole video or its fastest second) tells it apart."""
     seq = synthesize(
         SHARED_DATA / "bvh" / "cmu_cgspeed" / f"{movement}.bvh", SynthConfig.from_assignments(SYNTH)
     )
@@ -307,9 +307,10 @@ def test_another_movement_is_said_first_and_no_difference_is_stated(movement, tm
     assert summary["motions_match"] is False
     reasons = summary["movement"]["reasons"]
     assert reasons and summary["warnings"][: len(reasons)] == reasons
-    if movement == "02_03":
-        assert reasons == [r for r in reasons if "Froude number" in r and ": a run)" in r]
-        assert summary["movement"]["student_froude"] >= 0.5
+    if movement == "02_03":  # by its gait alone: over the whole video or its fastest second
+        assert reasons == [r for r in reasons if "Froude number" in r and "run" in r]
+        gait = summary["movement"]
+        assert max(gait["student_froude"], gait["student_froude_peak"]) >= 0.5
     assert all(d["stated"] is False and d["why"] for d in summary["largest_differences"])
     printed = capsys.readouterr().out.splitlines()
     assert printed[1].strip().startswith("the student does not seem to perform the reference")
