@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from experiments.register_synthetic import finding_agreement
-from experiments.summarise import SummariseError, load_runs, provenance_lines
+from experiments.summarise import SummariseError, load_runs, provenance_lines, write_page
 from motion.angles import COORDINATES, SegmentMap, clinical_angles
 from motion.registration.export import (
     FALLBACK_METHOD_ERROR_DEG,
@@ -524,10 +524,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.write:
         table.write(args.write)
     text = page(runs, table, args.runs)
-    if args.to:
-        Path(args.to).write_text(text)
-    else:
-        print(text)
+    write_page(text, args.to)
     return 0
 
 

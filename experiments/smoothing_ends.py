@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from experiments.summarise import SummariseError, load_runs, provenance_lines
+from experiments.summarise import SummariseError, load_runs, provenance_lines, write_page
 from motion.registration.movement import MovementSettings, net_displacement_m, peak_speed
 from motion.registration.refine import RefineSettings
 from motion.smoothing import FITS, TRUNCATE_SIGMAS, smooth_values
@@ -216,10 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SummariseError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    if args.to:
-        Path(args.to).write_text(text)
-    else:
-        print(text)
+    write_page(text, args.to)
     return 0
 
 

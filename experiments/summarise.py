@@ -32,6 +32,7 @@ __all__ = [
     "provenance",
     "provenance_lines",
     "results_markdown",
+    "write_page",
 ]
 
 #: config keys that make repetitions of one experiment rather than different experiments
@@ -144,6 +145,14 @@ def _label(fields: dict) -> str:
         return Path(v).stem if isinstance(v, str) and v.endswith(".bvh") else str(v)
 
     return ", ".join(f"{k}={short(v)}" for k, v in fields.items()) or "all"
+
+
+def write_page(text: str, to: str | Path | None) -> None:
+    """A generated results page to the file ``to``, or to standard output (``None``)."""
+    if to:
+        Path(to).write_text(text)
+    else:
+        print(text)
 
 
 def provenance_lines(runs: Sequence[RunResult]) -> list[str]:
