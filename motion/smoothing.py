@@ -10,11 +10,12 @@ frames around it (Gaussian weights, cut at :data:`TRUNCATE_SIGMAS`), of one of t
   kernel is cut, it still follows a trend: a sequence that moves at a steady rate keeps its
   rate to the last frame. The weighted mean there lags toward the inside instead (by about
   0.8 sigma frames' worth of movement at the last frame: a root moving through the video
-  was registered 6-8 % short of its travel, its Froude number 11-15 % low). The price is
-  variance: at the last frame the fit extrapolates from one side, so its noise is about
-  twice the interior's (Fan, *J. Am. Stat. Assoc.* 87, 1992: local linear regression has
-  the same bias order at the boundary as inside; the weighted mean's bias there is a
-  sigma's worth of slope).
+  was registered 2-11 % short of its travel, 7 % on average, and the gait check's Froude
+  number squares that; docs/results/smoothing_ends.md). The price is variance: at the last
+  frame the fit extrapolates from one side, so its noise is about twice the interior's
+  (Fan & Gijbels, *Local Polynomial Modelling and Its Applications*, 1996, ch. 3: local
+  linear regression's bias is of the same order at the boundary as inside, the weighted
+  mean's there of the order of sigma times the slope).
 * ``"constant"``: the weighted mean (Nadaraya-Watson) with the kernel renormalised at the
   ends: a level, not a trend (a constant stays constant, nothing extrapolates).
 
