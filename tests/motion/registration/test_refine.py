@@ -164,7 +164,7 @@ def test_smoothing_keeps_a_steady_offset_and_the_reference_swing(student):
     """A student that differs from the reference by a constant articulation on one joint
     and a constant heading, following the reference's own pelvis swing: smoothing the
     posture in the reference's terms leaves it as it is (to rounding), however fast the
-    reference moves (the heading away from the ends, where a turn is cut)."""
+    reference moves (the heading to within 0.01 degrees at the ends, where a turn is cut)."""
     _, ref, _, c, rot, pos = student
     joint = ref.skeleton.index("LeftLeg")
     offset = torch.linalg.matrix_exp(
@@ -179,10 +179,13 @@ def test_smoothing_keeps_a_steady_offset_and_the_reference_swing(student):
     torch.testing.assert_close(got[:, free], local[:, free], atol=1e-12, rtol=0)
     torch.testing.assert_close(got[:, joint], local[:, joint], atol=1e-12, rtol=0)
     # the heading turns at a constant rate: away from the ends (where the kernel is cut)
-    # its chordal mean is itself (a rotation about one axis: the circular mean)
+    # its chordal mean is itself (a rotation about one axis: the circular mean); at the ends
+    # the local linear fit follows the turn (a weighted mean would lag it by ~2 frames' turn)
     r = math.ceil(3 * 2.5)
     torch.testing.assert_close(got[r:-r, 0], local[r:-r, 0], atol=1e-9, rtol=0)
-    torch.testing.assert_close(root[r:-r], line[r:-r], atol=1e-12, rtol=0)
+    assert float(_angle_deg(got[:, 0], local[:, 0]).max()) < 0.01
+    # a root moving at a steady speed keeps it to the first and last frames
+    torch.testing.assert_close(root, line, atol=1e-12, rtol=0)
 
 
 def test_smoothing_takes_noise_out_of_the_articulation(student):
