@@ -124,8 +124,12 @@ def _student(config: dict) -> str:
     return Path(config.get("student") or config.get("reference", "")).stem or "?"
 
 
-def _cell(x: float, digits: int) -> str:
-    return "--" if not math.isfinite(x) else f"{x:+.{digits}f}" if digits == 1 else f"{x:.2f}"
+def _percent(x: float) -> str:
+    return f"{x:+.1f}" if math.isfinite(x) else "--"
+
+
+def _metres(x: float) -> str:
+    return f"{x:.2f}" if math.isfinite(x) else "--"
 
 
 def page(sources: Sequence[str]) -> str:
@@ -177,11 +181,11 @@ def page(sources: Sequence[str]) -> str:
     for label, scores in table:
         lines.append(
             f"| {label} | "
-            + " | ".join(_cell(s.net_err_pct, 1) for s in scores)
+            + " | ".join(_percent(s.net_err_pct) for s in scores)
             + " | "
-            + " | ".join(_cell(s.peak_err_pct, 1) for s in scores)
+            + " | ".join(_percent(s.peak_err_pct) for s in scores)
             + " | "
-            + " | ".join(f"{_cell(s.end_err_m, 2)} / {_cell(s.inside_err_m, 2)}" for s in scores)
+            + " | ".join(f"{_metres(s.end_err_m)} / {_metres(s.inside_err_m)}" for s in scores)
             + " |"
         )
 
