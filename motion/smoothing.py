@@ -73,19 +73,20 @@ def smooth_values(values: Tensor, sigma: float, fit: str = "linear") -> Tensor:
     radius = (len(kernel) - 1) // 2
     flat = values.reshape(values.shape[0], -1).T.unsqueeze(1)  # (M, 1, T)
     ones = torch.ones(1, 1, values.shape[0], dtype=values.dtype, device=values.device)
+    offset = torch.arange(-radius, radius + 1, dtype=values.dtype, device=values.device)
 
     def moment(x: Tensor, power: int) -> Tensor:
         """sum_s w_s (s - t)^power x[s] at every t (conv1d correlates: tap j is s - t = j - r)"""
-        offset = torch.arange(-radius, radius + 1, dtype=values.dtype, device=values.device)
         weight = (kernel * offset**power).view(1, 1, -1)
         return torch.nn.functional.conv1d(x, weight, padding=radius)
 
-    mean = moment(flat, 0) / moment(ones, 0)
+    s0, m0 = moment(ones, 0), moment(flat, 0)
+    mean = m0 / s0
     if fit == "constant" or values.shape[0] < 2:
         return mean.squeeze(1).T.reshape(values.shape)
-    s0, s1, s2 = moment(ones, 0), moment(ones, 1), moment(ones, 2)
+    s1, s2 = moment(ones, 1), moment(ones, 2)
     det = s0 * s2 - s1 * s1
-    line = (s2 * moment(flat, 0) - s1 * moment(flat, 1)) / det
+    line = (s2 * m0 - s1 * moment(flat, 1)) / det
     frames = torch.arange(values.shape[0], device=values.device)
     whole = (frames >= radius) & (frames < values.shape[0] - radius)
     # a line needs two frames of weight: where the weight sits on one (a kernel far narrower
