@@ -93,7 +93,7 @@ from motion.registration.movement import (
 from motion.registration.pipeline import silhouette_iou
 from motion.registration.polish import PosturePolishSettings
 from motion.registration.refine import RefineSettings, place_poses
-from motion.registration.types import paired_part, scaled_spec
+from motion.registration.types import VideoFeatures, paired_part, scaled_spec
 from motion.settings import setting
 from motion.synth import SynthConfig, synthesize
 
@@ -106,12 +106,10 @@ LIMB_PARTS = ("upper_arm", "forearm", "thigh", "shin")
 
 
 @dataclass
-class RegisterSyntheticConfig(ExperimentConfig):
-    """Fields of ``experiments/configs/register_synthetic.yaml``."""
-
-    NAME = "register_synthetic"
-    TINY_DOC = "a quick run (8 frames, 30 particles, 2 iterations)"
-    TINY: ClassVar[dict] = {"frames": 8, "particles": 30, "iterations": 2, "restarts": 1}
+class SyntheticStudentConfig(ExperimentConfig):
+    """The synthetic student of the experiments that register one (:func:`synthetic_inputs`):
+    its source motion, time warp, articulation, cameras and images, and the registration's
+    settings by dotted key."""
 
     reference: str = setting(BUNDLED, "reference BVH", path="file")
     student: str = setting(
@@ -134,6 +132,22 @@ class RegisterSyntheticConfig(ExperimentConfig):
     focal_px: float = setting(450.0, "focal length, pixels", gt=0)
     keypoints: bool = setting(False, "give noisy 2-D joints as an extra observation")
     frames: int = setting(0, "use the first N video frames only (0: all)", ge=0)
+    registration: dict[str, str] = setting(
+        {},
+        "any other setting of the registration by its dotted key, as `motion register` names "
+        "it under `registration` (refine.articulation_std: 0.15), its value read as on "
+        "`motion register`'s command line; applied after the fields above",
+    )
+
+
+@dataclass
+class RegisterSyntheticConfig(SyntheticStudentConfig):
+    """Fields of ``experiments/configs/register_synthetic.yaml``."""
+
+    NAME = "register_synthetic"
+    TINY_DOC = "a quick run (8 frames, 30 particles, 2 iterations)"
+    TINY: ClassVar[dict] = {"frames": 8, "particles": 30, "iterations": 2, "restarts": 1}
+
     particles: int = setting(100, "particles per part (stages 2-3)", ge=2, le=2000)
     iterations: int = setting(5, "particle BP iterations per run", ge=1, le=50)
     restarts: int = setting(2, "annealing runs", ge=1, le=10)
@@ -154,12 +168,6 @@ class RegisterSyntheticConfig(ExperimentConfig):
         "cpu",
         "where the registration runs: cpu, cuda or cuda:N (the runner then holds a GPU for "
         "the run; RegistrationSettings.device)",
-    )
-    registration: dict[str, str] = setting(
-        {},
-        "any other setting of the registration by its dotted key, as `motion register` names "
-        "it under `registration` (refine.articulation_std: 0.15), its value read as on "
-        "`motion register`'s command line; applied after the fields above",
     )
 
     def gpus(self) -> int:
@@ -376,20 +384,30 @@ def _settings(cfg: RegisterSyntheticConfig) -> RegistrationSettings:
         # could not reach it (docs/decisions/004-tuning-evidence.md)
         band=min(24, (cfg.particles - 1) // 2),
     )
-    settings = RegistrationSettings(
-        Stage1Settings(),
-        refine,
-        PosturePolishSettings(steps=cfg.polish_steps, proportion_steps=cfg.proportion_steps),
+    return registration_settings(
+        cfg,
+        stage1=Stage1Settings(),
+        refine=refine,
+        polish=PosturePolishSettings(steps=cfg.polish_steps, proportion_steps=cfg.proportion_steps),
         scale=cfg.scale or None,
         seed=cfg.seed,
         device=cfg.device,
     )
-    for key, value in cfg.registration.items():  # a bad key or value: a ConfigError naming it
-        settings = override(settings, key, parse_value(value), where="registration")
-    return settings
 
 
-def run(cfg: RegisterSyntheticConfig):
+@dataclass
+class SyntheticInputs:
+    """What :func:`synthetic_inputs` makes of a :class:`SyntheticStudentConfig`."""
+
+    reference: Reference
+    student: Reference | None  # the other performer (None: the reference itself)
+    video: VideoFeatures
+    truth: Truth
+
+
+def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
+    """The synthetic student of ``cfg`` rendered (:func:`motion.synth.synthesize`), its video
+    features and its truth (:func:`synthetic_truth`), cut to ``cfg.frames`` if set."""
     synth = SynthConfig(
         fps=cfg.fps,
         warp=cfg.warp,
@@ -412,6 +430,21 @@ def run(cfg: RegisterSyntheticConfig):
     video = features_from_sequence(seq, keypoints=cfg.keypoints)
     if cfg.frames:
         video, truth = _first(video, truth, cfg.frames)
+    return SyntheticInputs(reference, student, video, truth)
+
+
+def registration_settings(cfg: SyntheticStudentConfig, **fields) -> RegistrationSettings:
+    """:class:`RegistrationSettings` of ``fields``, then ``cfg.registration``'s dotted keys
+    (a bad key or value: a :class:`ConfigError` naming it)."""
+    settings = RegistrationSettings(**fields)
+    for key, value in cfg.registration.items():
+        settings = override(settings, key, parse_value(value), where="registration")
+    return settings
+
+
+def run(cfg: RegisterSyntheticConfig):
+    inputs = synthetic_inputs(cfg)
+    reference, student, video, truth = inputs.reference, inputs.student, inputs.video, inputs.truth
     n = video.num_frames
     note(f"register_synthetic: {n} video frames, {reference.num_frames} reference frames")
     t0 = time.perf_counter()

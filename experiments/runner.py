@@ -45,6 +45,7 @@ from experiments import (
     register_long,
     register_real,
     register_synthetic,
+    stage1_draws,
     stick_pose,
     stick_time,
 )
@@ -131,6 +132,9 @@ EXPERIMENTS = {
         register_real.TIMINGS,
     ),
     "polish_basin": Experiment(polish_basin.PolishBasinConfig, polish_basin.run, polish_basin.plot),
+    "stage1_draws": Experiment(
+        stage1_draws.Stage1DrawsConfig, stage1_draws.run, stage1_draws.plot, stage1_draws.TIMINGS
+    ),
 }
 
 

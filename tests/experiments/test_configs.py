@@ -53,6 +53,7 @@ CONTRACT = {  # metrics.json: accuracy figures (the same seed gives the same fil
         "silhouette_iou_no_change_mean",
     ],
     "register_long": ["c_err_mean", "c_err_mean_stage1", "a_err_deg_mean"],
+    "stage1_draws": ["c_err_mean_stage1", "c_err_median_stage1", "c_far_fraction"],
     "polish_basin": [
         f"{m}_{start}"
         for m in ("angle_rms_deg_start", "angle_rms_deg_polished", "range_recovered")
@@ -78,6 +79,7 @@ TIMINGS_CONTRACT = {  # timings.json: what varies from run to run
     "register_synthetic": ["sec_per_video_frame"],
     "register_long": ["sec_stage1", "sec_total", "peak_rss_mb"],
     "register_real": ["sports2d_sec", "pose2sim_sec"],
+    "stage1_draws": ["sec_stage1"],
     "polish_basin": [],
 }
 
