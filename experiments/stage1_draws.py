@@ -24,7 +24,6 @@ draw's.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from typing import ClassVar
@@ -39,7 +38,7 @@ from experiments.register_synthetic import (
     registration_settings,
     synthetic_inputs,
 )
-from motion.registration.approximate import approximate_registration, estimate_body_scale
+from motion.registration.pipeline import approximate_stages
 from motion.registration.refine import RefineSettings
 from motion.registration.types import VideoFeatures
 from motion.settings import setting
@@ -61,16 +60,12 @@ class Stage1DrawsConfig(SyntheticStudentConfig):
 
 
 def stage1_c(video: VideoFeatures, cfg: Stage1DrawsConfig, reference, seed: int) -> torch.Tensor:
-    """``(T',)`` stage 1's C of ``video`` under the registration's seed ``seed``: stage 0's
-    body scale, then stage 1, from one generator, on the silhouettes without colour -- as
-    :func:`motion.registration.register` runs them on the CPU (every frame seen)."""
+    """``(T',)`` stage 1's C of ``video`` under the registration's seed ``seed``: stages 0-1
+    exactly as :func:`motion.registration.register` runs them
+    (:func:`~motion.registration.pipeline.approximate_stages`), on the CPU."""
     settings = registration_settings(cfg, seed=seed)
     generator = torch.Generator().manual_seed(seed)
-    scale = estimate_body_scale(reference, video, settings.stage1, generator).value
-    shapes_only = dataclasses.replace(
-        video, observation=dataclasses.replace(video.observation, image=None)
-    )
-    return approximate_registration(reference, shapes_only, scale, settings.stage1, generator).C
+    return approximate_stages(reference, video, settings, generator).stage1.C
 
 
 def run(cfg: Stage1DrawsConfig):

@@ -59,7 +59,14 @@ from motion.registration.types import (
 from motion.render import project_parts
 from motion.settings import SettingError, Settings, setting
 
-__all__ = ["RegistrationSettings", "RegistrationSettingsError", "register", "silhouette_iou"]
+__all__ = [
+    "ApproximateStages",
+    "RegistrationSettings",
+    "RegistrationSettingsError",
+    "approximate_stages",
+    "register",
+    "silhouette_iou",
+]
 
 
 class RegistrationSettingsError(SettingError, RegistrationError):
@@ -174,6 +181,72 @@ def _carry_over_nonfinite(stage1: Stage1Result, name: str) -> tuple[Stage1Result
     return _fill_unseen(known, good), [warning]
 
 
+@dataclass
+class ApproximateStages:
+    """Stages 0-1 of :func:`register` (:func:`approximate_stages`).
+
+    Attributes:
+        body: stage 0's body scale G (or the one given).
+        stage1: stage 1's C and T on every video frame (unseen frames and frames whose fit
+            diverged carry their neighbours').
+        warnings: the user's sentences on frames whose fit diverged.
+        timings: seconds of ``stage0`` and ``stage1``.
+        notes: ``G`` (how it was obtained), ``stage1_pairs``, ``unseen_frames`` (if any).
+    """
+
+    body: BodyScale
+    stage1: Stage1Result
+    warnings: list[str]
+    timings: dict[str, float]
+    notes: dict[str, str]
+
+
+def approximate_stages(
+    reference: Reference,
+    video: VideoFeatures,
+    settings: RegistrationSettings,
+    generator: torch.Generator,
+    log: Callable[[str], None] | None = None,
+) -> ApproximateStages:
+    """Stage 0 (the body scale, unless ``settings.scale`` gives it) and stage 1 (C and T by
+    the time alignment of pair fits) on the frames where the person is seen, from one
+    ``generator``, as :func:`register` runs them (the inputs on one device, the generator's).
+    """
+    timings, notes = {}, {}
+    t0 = time.perf_counter()
+    if settings.scale is None:
+        body = estimate_body_scale(reference, video, settings.stage1, generator)
+    else:
+        body = BodyScale(float(settings.scale), measured=True, note="given")
+    notes["G"] = body.note
+    timings["stage0"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    seen = video.seen()
+    if not bool(seen.any()):
+        raise RegistrationError(
+            f"{video.name}: the person is never seen (every silhouette is empty)"
+        )
+    # stage 1 reads no colour: without it, and cut only when some frame is unseen (a cut by
+    # indices copies every map)
+    shapes_only = dataclasses.replace(
+        video, observation=dataclasses.replace(video.observation, image=None)
+    )
+    if not bool(seen.all()):
+        shapes_only = shapes_only.cut(seen.nonzero().flatten())
+    stage1 = approximate_registration(
+        reference, shapes_only, body.value, settings.stage1, generator, log
+    )
+    del shapes_only
+    if not bool(seen.all()):
+        stage1 = _fill_unseen(stage1, seen)
+        notes["unseen_frames"] = str(int((~seen).sum()))
+    stage1, warnings = _carry_over_nonfinite(stage1, video.name)
+    timings["stage1"] = time.perf_counter() - t0
+    notes["stage1_pairs"] = str(stage1.pair_evaluations)
+    return ApproximateStages(body, stage1, warnings, timings, notes)
+
+
 def register(
     reference: Reference | str | Path,
     video: VideoFeatures,
@@ -216,35 +289,11 @@ def register(
     generator = torch.Generator(device=device).manual_seed(s.seed)
     timings, notes = {}, {}
 
-    t0 = time.perf_counter()
-    if s.scale is None:
-        body = estimate_body_scale(reference, video, s.stage1, generator)
-    else:
-        body = BodyScale(float(s.scale), measured=True, note="given")
-    scale, notes["G"] = body.value, body.note
-    timings["stage0"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    seen = video.seen()
-    if not bool(seen.any()):
-        raise RegistrationError(
-            f"{video.name}: the person is never seen (every silhouette is empty)"
-        )
-    # stage 1 reads no colour: without it, and cut only when some frame is unseen (a cut by
-    # indices copies every map)
-    shapes_only = dataclasses.replace(
-        video, observation=dataclasses.replace(video.observation, image=None)
-    )
-    if not bool(seen.all()):
-        shapes_only = shapes_only.cut(seen.nonzero().flatten())
-    stage1 = approximate_registration(reference, shapes_only, scale, s.stage1, generator, log)
-    del shapes_only
-    if not bool(seen.all()):
-        stage1 = _fill_unseen(stage1, seen)
-        notes["unseen_frames"] = str(int((~seen).sum()))
-    stage1, warnings = _carry_over_nonfinite(stage1, video.name)
-    timings["stage1"] = time.perf_counter() - t0
-    notes["stage1_pairs"] = str(stage1.pair_evaluations)
+    approximate = approximate_stages(reference, video, s, generator, log)
+    body, stage1, warnings = approximate.body, approximate.stage1, approximate.warnings
+    scale = body.value
+    timings |= approximate.timings
+    notes |= approximate.notes
 
     t0 = time.perf_counter()
     refined = refine(
