@@ -287,13 +287,10 @@ def register(
     # every stage runs where its inputs are (each tensor it makes takes their device)
     reference, video = to_device(reference, device), to_device(video, device)
     generator = torch.Generator(device=device).manual_seed(s.seed)
-    timings, notes = {}, {}
-
     approximate = approximate_stages(reference, video, s, generator, log)
     body, stage1, warnings = approximate.body, approximate.stage1, approximate.warnings
     scale = body.value
-    timings |= approximate.timings
-    notes |= approximate.notes
+    timings, notes = dict(approximate.timings), dict(approximate.notes)
 
     t0 = time.perf_counter()
     refined = refine(
