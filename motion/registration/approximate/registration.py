@@ -66,6 +66,19 @@ def _viterbi_candidates(
     return result.assignment[0].to(cost.device)
 
 
+def fitted_tempo(c: Tensor) -> float | None:
+    """The student's tempo in reference frames per video frame read off a correspondence
+    ``c`` ``(T',)`` while it moves: C's advance between its held ends (the leading and
+    trailing runs of C's first and last value) over the video frames in which it advances;
+    ``None`` where it never does. Not C's mean slope: a stall that drops a cycle (what a
+    second pass should undo) pulls the mean slope down. Meant for videos slower than the
+    reference (several reference frames per video frame), where C advances on every frame."""
+    c = c.detach().cpu()
+    steps = c[1:] - c[:-1]
+    moving = int((steps > 0).sum())
+    return float(steps.sum()) / moving if moving else None
+
+
 def _final_transforms(scene: _Scene, c_path: Tensor, row_init: Init | None):
     """``T`` per video frame at ``(t', C(t'))``: many starts, then exact temporal smoothing
     over each frame's candidates, then rounds of LM warm-started from the neighbours' chosen
@@ -169,26 +182,34 @@ def approximate_registration(
             progress(f"stage 1: {cols.numel()} pairs ({scene.fits} pair fits so far)")
         return fit.cost.to(torch.get_default_dtype())
 
+    def align(step_cost: Tensor | None):
+        try:
+            return coarse_to_fine_align(
+                cost_fn,
+                tv,
+                tr,
+                max_step,
+                factor=st.factor,
+                radius=radius,
+                max_cells=st.max_cells,
+                fix_start=st.fix_start,
+                fix_end=st.fix_end,
+                step_cost=step_cost,
+                robust=st.robust,
+                robust_scale=st.robust_scale,
+                beam=st.beam,
+                prune=st.prune,
+            )
+        except AlignmentError as err:
+            raise RegistrationError(f"stage 1 time alignment failed: {err}") from err
+
     slope_cost = slope_step_cost(max_step, ratio, st.slope_weight) if st.slope_weight else None
-    try:
-        alignment = coarse_to_fine_align(
-            cost_fn,
-            tv,
-            tr,
-            max_step,
-            factor=st.factor,
-            radius=radius,
-            max_cells=st.max_cells,
-            fix_start=st.fix_start,
-            fix_end=st.fix_end,
-            step_cost=slope_cost,
-            robust=st.robust,
-            robust_scale=st.robust_scale,
-            beam=st.beam,
-            prune=st.prune,
-        )
-    except AlignmentError as err:
-        raise RegistrationError(f"stage 1 time alignment failed: {err}") from err
+    alignment = align(slope_cost)
+    if st.tempo_weight > 0:
+        tempo = fitted_tempo(alignment.path[0])
+        if tempo is not None:
+            tempo = min(max(tempo, ratio / st.step_factor), float(max_step))
+            alignment = align(slope_step_cost(max_step, tempo, st.tempo_weight))
     c_path = alignment.path[0]
     row_init = (best_rot, best_p)
     cost, rot, p = _final_transforms(scene, c_path, row_init)

@@ -240,6 +240,17 @@ class Stage1Settings(Settings):
         "docs/results/stage1_draws.md",
         ge=0,
     )
+    tempo_weight: float = setting(
+        0.0,
+        "a second pass of the time alignment with a slope prior of this weight (threshold "
+        "units) around the student's tempo fitted to the first pass's C "
+        "(motion.registration.approximate.registration.fitted_tempo) instead of the "
+        "frame-rate ratio: against stalls that drop a cycle without pulling another "
+        "performer's steady tempo toward the reference's. Measured on other performers it "
+        "moves stage 1's failures as a stronger slope_weight does (docs/experiments.md, "
+        '"Stage 1\'s C across seeds"); 0: one pass',
+        ge=0,
+    )
     fix_start: bool = setting(False, "force C(0) = 0 (the first frames match)")
     fix_end: bool = setting(False, "force C(T'-1) = T-1 (the last frames match)")
     # -- temporal consistency of the final T

@@ -30,6 +30,7 @@ from motion.registration.approximate import (
 )
 from motion.registration.approximate import scene as scene_module
 from motion.registration.approximate.pairs import _heading_penalty
+from motion.registration.approximate.registration import fitted_tempo
 from motion.registration.approximate.scene import _build_scene
 from motion.registration.types import Reference, RegistrationError, VideoFeatures
 from motion.render import label_map, project_parts
@@ -371,6 +372,29 @@ def test_approximate_registration_recovers_a_warped_walk(reference, walk):
     assert float(_angle_deg(result.rotation, rot_true).median()) < 10.0
     assert float((result.translation.double() - p_true).norm(dim=-1).median()) < 0.15
     assert result.seconds > 0 and messages and all("\n" not in m for m in messages)
+
+
+def test_fitted_tempo_is_the_advance_per_moving_frame_whatever_stalls_and_held_ends():
+    """5 reference frames per video frame while C moves: held ends and a mid-video stall (the
+    cycle drop a second pass should undo) leave the tempo read at 5, where C's mean slope
+    reads 50 / 21 = 2.4; a C that never moves has none."""
+    moving = [5 * k for k in range(5)]  # 0 .. 20
+    c = torch.tensor([0, 0, 0] + moving + [20] * 6 + [25 + 5 * k for k in range(6)] + [50, 50])
+    assert fitted_tempo(c) == pytest.approx(5.0)
+    assert fitted_tempo(torch.arange(10) * 3) == pytest.approx(3.0)
+    assert fitted_tempo(torch.full((8,), 4)) is None
+
+
+def test_a_second_pass_at_the_fitted_tempo_keeps_a_warped_walk(reference, walk):
+    """The same walk as above with the tempo pass on: C within the same bound."""
+    video = _video(walk)
+    settings = Stage1Settings(tempo_weight=0.1)
+    result = approximate_registration(
+        reference, video, 1.0, settings, torch.Generator().manual_seed(0)
+    )
+    c_true = torch.from_numpy(walk.arrays["C_true"])
+    assert bool((result.C[1:] >= result.C[:-1]).all())
+    assert float((result.C - c_true).abs().float().mean()) <= 6.0
 
 
 # -- (d) body size -------------------------------------------------------------------------------
