@@ -125,8 +125,10 @@ def approximate_registration(
     prior around the frame-rate ratio ``reference.frame_rate / video.frame_rate`` is added,
     with steps ``0 <= C(t'+1) - C(t') <= ceil(step_factor * ratio)``. Only the coarse level
     and a band around its path are evaluated, never all ``T' x T`` pairs (unless the
-    problem has at most ``settings.max_cells`` cells). Then ``T`` at ``(t', C(t'))`` with more
-    starts and iterations, smoothed over time (see :class:`Stage1Settings`).
+    problem has at most ``settings.max_cells`` cells); with ``settings.tempo_weight`` a second
+    pass has the slope prior around the tempo read off the first (:func:`fitted_tempo`). Then
+    ``T`` at ``(t', C(t'))`` with more starts and iterations, smoothed over time (see
+    :class:`Stage1Settings`).
 
     Args:
         reference, video: the inputs; scale: G.
