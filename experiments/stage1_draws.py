@@ -40,7 +40,7 @@ from experiments.register_synthetic import (
 )
 from motion.registration.pipeline import approximate_stages
 from motion.registration.refine import RefineSettings
-from motion.registration.types import VideoFeatures
+from motion.registration.types import Reference, VideoFeatures
 from motion.settings import setting
 
 __all__ = ["TIMINGS", "Stage1DrawsConfig", "plot", "run", "stage1_c"]
@@ -59,8 +59,10 @@ class Stage1DrawsConfig(SyntheticStudentConfig):
     draws: int = setting(8, "seeds of stages 0-1 tried: seed, seed + 1, ...", ge=1, le=1000)
 
 
-def stage1_c(video: VideoFeatures, cfg: Stage1DrawsConfig, reference, seed: int) -> torch.Tensor:
-    """``(T',)`` stage 1's C of ``video`` under the registration's seed ``seed``: stages 0-1
+def stage1_c(
+    reference: Reference, video: VideoFeatures, cfg: Stage1DrawsConfig, seed: int
+) -> torch.Tensor:
+    """``(T',)`` stage 1's C of ``video`` against ``reference`` under the registration's seed ``seed``: stages 0-1
     exactly as :func:`motion.registration.register` runs them
     (:func:`~motion.registration.pipeline.approximate_stages`), on the CPU."""
     settings = registration_settings(cfg, seed=seed)
@@ -75,7 +77,7 @@ def run(cfg: Stage1DrawsConfig):
     paths, errors, seconds = [], [], []
     for draw in range(cfg.draws):
         t0 = time.perf_counter()
-        c = stage1_c(video, cfg, reference, cfg.seed + draw)
+        c = stage1_c(reference, video, cfg, cfg.seed + draw)
         seconds.append(time.perf_counter() - t0)
         nearest = truth.C_alternatives[nearest_truth(c, truth.C_alternatives)]
         errors.append(float((c - nearest).abs().double().mean()))

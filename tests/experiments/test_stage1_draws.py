@@ -20,7 +20,7 @@ def test_stage1_c_is_the_c_register_starts_from_for_the_same_seed():
         cfg, refine=cheap, polish=PosturePolishSettings(steps=0), seed=seed
     )
     result = register(inputs.reference, inputs.video, settings=settings)
-    c = stage1_c(inputs.video, cfg, inputs.reference, seed)
+    c = stage1_c(inputs.reference, inputs.video, cfg, seed)
     assert torch.equal(c, result.C_stage1)
-    other = stage1_c(inputs.video, cfg, inputs.reference, seed + 1)
+    other = stage1_c(inputs.reference, inputs.video, cfg, seed + 1)
     assert other.shape == c.shape  # another seed: another draw, the same frames
