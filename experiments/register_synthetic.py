@@ -186,12 +186,12 @@ class Truth:
     height: float  # metres
     #: (A, T') every equally true C (:func:`true_correspondences`), C first
     C_alternatives: Tensor
-    #: (T', T) metres, :func:`_posture_cost` of the student against the reference (another
+    #: (T', T) metres, :func:`posture_cost` of the student against the reference (another
     #: performer only; ``None`` for the reference itself)
     posture_cost: Tensor | None = None
 
 
-def _posture_cost(student: Reference, shown: Tensor, reference: Reference) -> Tensor:
+def posture_cost(student: Reference, shown: Tensor, reference: Reference) -> Tensor:
     """``(T', T)`` metres: the mean distance of the joints (matched by name) of student frame
     ``shown[t']`` and reference frame t, each in its root's frame."""
     names = [n for n in student.skeleton.names if n in reference.skeleton.names]
@@ -202,7 +202,9 @@ def _posture_cost(student: Reference, shown: Tensor, reference: Reference) -> Te
     return (a[:, None] - b[None]).norm(dim=-1).mean(-1)
 
 
-def _max_step(shown: Tensor) -> int:
+def truth_max_step(shown: Tensor) -> int:
+    """The true alignment's largest step: twice the mean reference frames per video frame
+    that the student's ``shown`` frames advance."""
     return max(1, math.ceil(2 * (shown[-1] - shown[0]).item() / max(1, len(shown) - 1)))
 
 
@@ -211,7 +213,7 @@ def true_correspondence(student: Reference, shown: Tensor, reference: Reference)
     (student frame ``shown[t']``) -> the reference frame whose joints in the root's frame are
     closest on average (chain Viterbi, steps 0..S with S twice the frame ratio, free ends).
     Joints are matched by name."""
-    return chain_align(_posture_cost(student, shown, reference), _max_step(shown)).path[0]
+    return chain_align(posture_cost(student, shown, reference), truth_max_step(shown)).path[0]
 
 
 #: alignments of two performers' motions whose mean posture distance is within this share of
@@ -229,9 +231,18 @@ def true_correspondences(
     alignments (one per start frame C(0) that is a local minimum of the best cost given
     that start) whose mean posture distance is within ``tie`` of the best one's -- the
     truth up to the reference's own repetitions (another gait cycle)."""
-    cost = _posture_cost(student, shown, reference)
-    step = _max_step(shown)
-    best = chain_align(cost, step)
+    return equally_true_alignments(
+        posture_cost(student, shown, reference), truth_max_step(shown), tie
+    )
+
+
+def equally_true_alignments(cost: Tensor, max_step: int, tie: float = TRUTH_TIE) -> Tensor:
+    """``(A, T')`` long: the monotone alignments of the ``(T', T)`` distance table ``cost``
+    (:func:`motion.alignment.chain_align`, steps 0..``max_step``, free ends) that are equally
+    true: the best one first, then, per start frame C(0) that is a local minimum of the best
+    total given that start (and more than a step from the best one's), its best alignment
+    when that total is within ``tie`` of the best one's."""
+    best = chain_align(cost, max_step)
     n = cost.shape[1]
     totals, paths = [], []
     for starts in torch.arange(n).split(64):
@@ -239,7 +250,7 @@ def true_correspondences(
         only = torch.full((len(starts), n), math.inf, dtype=cost.dtype)
         only[torch.arange(len(starts)), starts] = 0.0
         batch[:, 0] += only
-        fixed = chain_align(batch, step)
+        fixed = chain_align(batch, max_step)
         totals.append(fixed.cost)
         paths.append(fixed.path)
     total, path = torch.cat(totals), torch.cat(paths)
@@ -247,7 +258,7 @@ def true_correspondences(
     out = [best.path[0]]
     for s in range(n):
         local = (s == 0 or total[s] <= total[s - 1]) and (s == n - 1 or total[s] <= total[s + 1])
-        distinct = abs(s - int(best.path[0, 0])) > step
+        distinct = abs(s - int(best.path[0, 0])) > max_step
         if local and distinct and float(total[s]) <= limit:
             out.append(path[s])
     return torch.stack(out)
@@ -279,14 +290,14 @@ def synthetic_truth(seq, reference: Reference, student: Reference | None) -> Tru
         alternatives = shown[None]
     else:
         alternatives = true_correspondences(student, shown, reference)
-        cost = _posture_cost(student, shown, reference)
+        cost = posture_cost(student, shown, reference)
     height = float((joints[..., 1].amax(-1) - joints[..., 1].amin(-1)).mean())
     return Truth(alternatives[0], rotation, joints[:, 0], local, joints, height, alternatives, cost)
 
 
 def posture_excess(cost: Tensor | None, c: Tensor, best: Tensor) -> float:
     """How much farther the student's postures lie from the reference's along ``c`` than
-    along ``best`` (``(T',)`` reference frames; ``cost`` ``(T', T)``, :func:`_posture_cost`):
+    along ``best`` (``(T',)`` reference frames; ``cost`` ``(T', T)``, :func:`posture_cost`):
     mean distance along ``c`` over mean along ``best``, minus 1 (0 where both are 0, inf
     where only the truth's is: a student identical to the reference); NaN without a cost."""
     if cost is None:
@@ -405,10 +416,9 @@ class SyntheticInputs:
     truth: Truth
 
 
-def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
-    """The synthetic student of ``cfg`` rendered (:func:`motion.synth.synthesize`), its video
-    features and its truth (:func:`synthetic_truth`), cut to ``cfg.frames`` if set."""
-    synth = SynthConfig(
+def synth_config(cfg: SyntheticStudentConfig) -> SynthConfig:
+    """The :class:`motion.synth.SynthConfig` that renders ``cfg``'s student."""
+    return SynthConfig(
         fps=cfg.fps,
         warp=cfg.warp,
         articulation=dict(cfg.articulation) if not cfg.student else {},
@@ -418,7 +428,12 @@ def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
         focal_px=cfg.focal_px,
         seed=cfg.warp_seed,
     )
-    seq = synthesize(cfg.reference, synth, student=cfg.student or None)
+
+
+def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
+    """The synthetic student of ``cfg`` rendered (:func:`motion.synth.synthesize`), its video
+    features and its truth (:func:`synthetic_truth`), cut to ``cfg.frames`` if set."""
+    seq = synthesize(cfg.reference, synth_config(cfg), student=cfg.student or None)
     reference = Reference.from_bvh(cfg.reference)
     student = Reference.from_bvh(cfg.student) if cfg.student else None
     if student is not None and student.skeleton.names != reference.skeleton.names:

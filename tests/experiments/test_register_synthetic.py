@@ -20,12 +20,12 @@ from experiments.register_synthetic import (
     _first,
     _iou_of_alternatives,
     _long_bones,
-    _posture_cost,
     _settings,
     _swing_error_deg,
     angle_error_metrics,
     finding_agreement,
     nearest_truth,
+    posture_cost,
     posture_excess,
     synthetic_truth,
     true_correspondence,
@@ -76,7 +76,7 @@ def test_a_c_off_the_truth_is_scored_by_how_much_farther_its_postures_lie():
     gives NaN."""
     ref = Reference.from_bvh(WALK)
     shown = time_warp(40, ref.num_frames - 40, 0.3, torch.Generator().manual_seed(4))
-    cost = _posture_cost(ref, shown, ref)
+    cost = posture_cost(ref, shown, ref)
     assert posture_excess(cost, shown, shown) == 0.0
     assert posture_excess(cost, shown + 30, shown) == math.inf
     by_hand = torch.tensor([[2.0, 4.0, 9.0], [7.0, 5.0, 1.0]])
