@@ -700,7 +700,9 @@ def proportion_errors(reference: Reference, student: Reference | None, result) -
     return out
 
 
-def _clinical(body: Reference, rotations: Tensor) -> ClinicalAngles:
+def clinical_angles_of(body: Reference, rotations: Tensor) -> ClinicalAngles:
+    """:func:`motion.angles.clinical_angles` of local ``rotations`` ``(..., J, 3, 3)`` on
+    ``body``'s skeleton, its segments found from its roles."""
     segments = SegmentMap.from_roles(body.skeleton, body.model.mapping)
     return clinical_angles(body.skeleton, rotations, segments)
 
@@ -709,8 +711,8 @@ def true_differences(reference: Reference, student: Reference | None, truth: Tru
     """``(T', K)`` degrees: per video frame and coordinate of :data:`motion.angles.
     COORDINATES`, the student's true clinical angle (on its own skeleton) minus the
     reference's at the true C, wrapped to [-180, 180)."""
-    mine = _clinical(student or reference, truth.local).degrees
-    theirs = _clinical(reference, reference.rotations[truth.C]).degrees
+    mine = clinical_angles_of(student or reference, truth.local).degrees
+    theirs = clinical_angles_of(reference, reference.rotations[truth.C]).degrees
     return torch.remainder(mine - theirs + 180.0, 360.0) - 180.0
 
 

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from experiments.register_synthetic import (
     SyntheticStudentConfig,
+    clinical_angles_of,
     equally_true_alignments,
     nearest_truth,
     posture_cost,
@@ -44,6 +45,7 @@ from experiments.register_synthetic import (
     truth_max_step,
 )
 from experiments.summarise import SummariseError, load_runs, provenance_lines, write_page
+from motion.angles import COORDINATES
 from motion.registration.types import Reference
 from motion.synth import synthesize
 
@@ -53,6 +55,7 @@ __all__ = [
     "RunC",
     "bone_direction_distance",
     "c_errors",
+    "difference_spread",
     "local_rotation_distance",
     "main",
     "pair_truths",
@@ -152,12 +155,15 @@ class PairTruths:
         student, reference: the BVH files' names (no folders).
         warp_seed: the student's time warp.
         truths: per :data:`DISTANCES` name, ``(A, T')`` long reference frames, the best first.
+        reference_angles: ``(T, K)`` degrees, the reference's clinical angles
+            (:data:`motion.angles.COORDINATES`) in every frame.
     """
 
     student: str
     reference: str
     warp_seed: int
     truths: dict[str, Tensor]
+    reference_angles: Tensor
 
 
 def pair_truths(cfg: SyntheticStudentConfig) -> PairTruths:
@@ -175,7 +181,10 @@ def pair_truths(cfg: SyntheticStudentConfig) -> PairTruths:
     for name, distance in DISTANCES.items():
         alternatives = equally_true_alignments(distance(student, shown, reference), step)
         truths[name] = alternatives[:, : cfg.frames] if cfg.frames else alternatives
-    return PairTruths(Path(cfg.student).name, Path(cfg.reference).name, cfg.warp_seed, truths)
+    angles = clinical_angles_of(reference, reference.rotations).degrees
+    return PairTruths(
+        Path(cfg.student).name, Path(cfg.reference).name, cfg.warp_seed, truths, angles
+    )
 
 
 def _distance(c: Tensor, alternatives: Tensor) -> float:
@@ -189,6 +198,21 @@ def truth_spread(truths: PairTruths) -> dict[str, float]:
     (``positions``) equally true ones: mean over video frames, reference frames."""
     ours = truths.truths["positions"]
     return {name: _distance(t[0], ours) for name, t in truths.truths.items()}
+
+
+def difference_spread(truths: PairTruths) -> dict[str, Tensor]:
+    """Per definition, ``(T', K)`` degrees: how much the student's true clinical-angle
+    difference (its angle minus the reference's at the true C) changes when the true C is
+    that definition's best instead of the nearest of the experiment's: the reference's angle
+    at the experiment's C minus at the definition's, wrapped to [-180, 180)."""
+    ours = truths.truths["positions"]
+    angles = truths.reference_angles
+    out = {}
+    for name, t in truths.truths.items():
+        theirs = t[0]
+        mine = ours[nearest_truth(theirs, ours)]
+        out[name] = torch.remainder(angles[mine] - angles[theirs] + 180.0, 360.0) - 180.0
+    return out
 
 
 def c_errors(c: Tensor, truths: PairTruths) -> dict[str, float]:
@@ -287,6 +311,7 @@ def page(runs: Sequence[RunC], sources: Sequence[str]) -> str:
         spread = truth_spread(truths)
         cells = " | ".join(f"{spread[n]:.1f}" for n in names)
         lines.append(f"| {_pair(truths)} | {warp} | {cells} |")
+    lines += ["", *_difference_section(list(students.values()))]
     lines += [
         "",
         "## Each registration's C against each truth",
@@ -312,6 +337,34 @@ def page(runs: Sequence[RunC], sources: Sequence[str]) -> str:
         stage1 = " | ".join(_cell([r.stage1[n] for r in group]) for n in names)
         lines.append(f"| {pair} | {cameras} | {len(group)} | {final} | {nearest} | {stage1} |")
     return "\n".join(lines) + "\n"
+
+
+def _difference_section(students: Sequence[PairTruths]) -> list[str]:
+    """The page's table of :func:`difference_spread`, per coordinate, pooled over
+    ``students``."""
+    others = [n for n in DISTANCES if n != "positions"]
+    spreads = [difference_spread(t) for t in students]
+    lines = [
+        "## What the definition does to the true differences",
+        "",
+        "A finding compares the student with the reference at the true C, so the true",
+        "difference of a clinical angle changes with the definition: by the reference's angle",
+        "at the experiment's true C minus at the definition's. Per coordinate, pooled over the",
+        "synthetic students above: the RMS of that change over every video frame, then the mean",
+        "over students of its mean over the video, absolute (what a finding over a long",
+        "stretch sees), degrees.",
+        "",
+        "| coordinate | " + " | ".join(f"{n}: per frame / video mean" for n in others) + " |",
+        "|---|" + "---|" * len(others),
+    ]
+    for k, coordinate in enumerate(COORDINATES):
+        cells = []
+        for name in others:
+            frames = torch.cat([s[name][:, k] for s in spreads])
+            means = torch.stack([s[name][:, k].mean().abs() for s in spreads])
+            cells.append(f"{float(frames.square().mean().sqrt()):.1f} / {float(means.mean()):.1f}")
+        lines.append(f"| {coordinate} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -21,8 +21,10 @@ from experiments.register_synthetic import (
 )
 from experiments.truth_definitions import (
     DISTANCES,
+    PairTruths,
     bone_direction_distance,
     c_errors,
+    difference_spread,
     local_rotation_distance,
     main,
     pair_truths,
@@ -137,6 +139,40 @@ def test_the_rotation_distance_is_the_mean_turn_between_the_joints_rotations(wal
         )
     cost = local_rotation_distance(student, shown, walk)
     assert float(cost[0, 0]) == pytest.approx(float(turns.mean()), abs=1e-6)
+
+
+def test_the_difference_spread_is_the_reference_angle_between_the_two_truths():
+    """A coordinate that ramps 2 degrees per reference frame and a definition 3 frames later
+    than the experiment's truth: its true differences change by 2 x 3 = 6 degrees in every
+    frame (the reference's angle at the experiment's C minus at the later one: -6); across
+    +-180 the change wraps; the experiment's own definition changes nothing. Of two
+    equally true alignments of the experiment, the nearer one is the anchor."""
+    frames = torch.arange(40, dtype=torch.float64)
+    angles = torch.stack([2.0 * frames, torch.where(frames < 22, 179.0, -179.0)], 1)
+    ours = torch.stack([torch.arange(5) + 10, torch.arange(5) + 30])
+    truths = PairTruths(
+        "s.bvh",
+        "r.bvh",
+        0,
+        {"positions": ours, "local_rotations": (torch.arange(5) + 13)[None]},
+        angles,
+    )
+    spread = difference_spread(truths)
+    torch.testing.assert_close(spread["positions"], torch.zeros(5, 2, dtype=torch.float64))
+    torch.testing.assert_close(spread["local_rotations"][:, 0], torch.full((5,), -6.0).double())
+    # frames 10..14 against 13..16: 179 - 179 = 0 before 22, and none cross it here
+    torch.testing.assert_close(spread["local_rotations"][:, 1], torch.zeros(5).double())
+    crossing = PairTruths(
+        "s.bvh",
+        "r.bvh",
+        0,
+        {"positions": (torch.arange(5) + 18)[None], "x": (torch.arange(5) + 20)[None]},
+        angles,
+    )
+    # frame 18 vs 20: 179 - 179; 20 vs 22: 179 - (-179) = 358, wrapped -2; 22 vs 24: 0
+    torch.testing.assert_close(
+        difference_spread(crossing)["x"][:, 1], torch.tensor([0.0, 0.0, -2.0, -2.0, 0.0]).double()
+    )
 
 
 def _record(folder, config: dict, c, c_stage1) -> None:
