@@ -22,7 +22,6 @@ ends at the price of some noise there.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import sys
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from experiments.summarise import SummariseError, load_runs, provenance_lines, write_page
+from experiments.summarise import SummariseError, load_runs, page_main, provenance_lines
 from motion.registration.movement import MovementSettings, net_displacement_m, peak_speed
 from motion.registration.refine import RefineSettings
 from motion.smoothing import FITS, TRUNCATE_SIGMAS, smooth_values
@@ -209,19 +208,7 @@ def page(sources: Sequence[str]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.smoothing_ends", description=__doc__.split("\n\n")[0]
-    )
-    parser.add_argument("runs", nargs="+", help="folders of register_synthetic run records")
-    parser.add_argument("--to", help="write the results page here (Markdown)")
-    args = parser.parse_args(argv)
-    try:
-        text = page(args.runs)
-    except SummariseError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    write_page(text, args.to)
-    return 0
+    return page_main(argv, "python -m experiments.smoothing_ends", __doc__.split("\n\n")[0], page)
 
 
 if __name__ == "__main__":

@@ -14,9 +14,11 @@ the sweep, rerun this, and the numbers and their provenance change together.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
-from collections.abc import Iterable, Sequence
+import sys
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,6 +155,25 @@ def write_page(text: str, to: str | Path | None) -> None:
         Path(to).write_text(text)
     else:
         print(text)
+
+
+def page_main(
+    argv: Sequence[str] | None, prog: str, description: str, page: Callable[[list[str]], str]
+) -> int:
+    """The command line of an analysis that reads folders of run records and writes one
+    results page: ``prog RUNS [RUNS ...] [--to PAGE]``. ``page(folders)`` makes the page's
+    text; a :class:`SummariseError` it raises is printed as one line and exits 2."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("runs", nargs="+", help="folders of register_synthetic run records")
+    parser.add_argument("--to", help="write the results page here (Markdown)")
+    args = parser.parse_args(argv)
+    try:
+        text = page(args.runs)
+    except SummariseError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    write_page(text, args.to)
+    return 0
 
 
 def provenance_lines(runs: Sequence[RunResult]) -> list[str]:

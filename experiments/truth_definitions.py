@@ -23,7 +23,6 @@ more than a C target, that target asks for more than the truth itself can say.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import sys
@@ -44,7 +43,7 @@ from experiments.register_synthetic import (
     synth_config,
     truth_max_step,
 )
-from experiments.summarise import SummariseError, load_runs, provenance_lines, write_page
+from experiments.summarise import SummariseError, load_runs, page_main, provenance_lines
 from motion.angles import COORDINATES
 from motion.registration.types import Reference
 from motion.synth import synthesize
@@ -367,27 +366,25 @@ def _difference_section(students: Sequence[PairTruths]) -> list[str]:
     return lines
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.truth_definitions", description=__doc__.split("\n\n")[0]
-    )
-    parser.add_argument("runs", nargs="+", help="folders of register_synthetic run records")
-    parser.add_argument("--to", help="write the results page here (Markdown)")
-    args = parser.parse_args(argv)
-    try:
-        runs = read_runs(args.runs)
-    except SummariseError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+def page_of(folders: Sequence[str]) -> str:
+    """The results page of the run records under ``folders``.
+
+    Raises:
+        SummariseError: no folder of records, or no run of another performer in them.
+    """
+    runs = read_runs(folders)
     if not runs:
-        print(
-            f"error: {', '.join(args.runs)}: no run of another performer with a per_frame.csv "
-            "(rerun register_synthetic with student=...)",
-            file=sys.stderr,
+        raise SummariseError(
+            f"{', '.join(folders)}: no run of another performer with a per_frame.csv "
+            "(rerun register_synthetic with student=...)"
         )
-        return 2
-    write_page(page(runs, args.runs), args.to)
-    return 0
+    return page(runs, folders)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return page_main(
+        argv, "python -m experiments.truth_definitions", __doc__.split("\n\n")[0], page_of
+    )
 
 
 if __name__ == "__main__":
