@@ -158,17 +158,27 @@ def write_page(text: str, to: str | Path | None) -> None:
 
 
 def page_main(
-    argv: Sequence[str] | None, prog: str, description: str, page: Callable[[list[str]], str]
+    argv: Sequence[str] | None,
+    prog: str,
+    description: str,
+    page: Callable[[list[str]], str],
+    figure: Callable[[list[str], str], None] | None = None,
 ) -> int:
     """The command line of an analysis that reads folders of run records and writes one
-    results page: ``prog RUNS [RUNS ...] [--to PAGE]``. ``page(folders)`` makes the page's
-    text; a :class:`SummariseError` it raises is printed as one line and exits 2."""
+    results page: ``prog RUNS [RUNS ...] [--to PAGE]`` (and ``[--figure PNG]`` when the
+    analysis draws one). ``page(folders)`` makes the page's text, ``figure(folders, path)``
+    draws the figure; a :class:`SummariseError` either raises is printed as one line and
+    exits 2."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("runs", nargs="+", help="folders of register_synthetic run records")
     parser.add_argument("--to", help="write the results page here (Markdown)")
+    if figure is not None:
+        parser.add_argument("--figure", help="also draw the analysis's figure here (PNG)")
     args = parser.parse_args(argv)
     try:
         text = page(args.runs)
+        if figure is not None and args.figure:
+            figure(args.runs, args.figure)
     except SummariseError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

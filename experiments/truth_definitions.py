@@ -1,7 +1,7 @@
 """How well defined the true C between two performers is: the truth under several meanings of
 "the same posture", and each registration's C scored against every one.
 
-``python -m experiments.truth_definitions RUNS [RUNS ...] [--to PAGE]``
+``python -m experiments.truth_definitions RUNS [RUNS ...] [--to PAGE] [--figure PNG]``
 
 ``RUNS`` are folders of :mod:`experiments.register_synthetic` run records of students of
 *other performers* (``experiments/configs/register_cross.yaml`` makes them). For the reference
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -55,6 +56,7 @@ __all__ = [
     "bone_direction_distance",
     "c_errors",
     "difference_spread",
+    "figure_of",
     "local_rotation_distance",
     "main",
     "pair_truths",
@@ -366,24 +368,68 @@ def _difference_section(students: Sequence[PairTruths]) -> list[str]:
     return lines
 
 
-def page_of(folders: Sequence[str]) -> str:
-    """The results page of the run records under ``folders``.
+@functools.lru_cache(maxsize=2)
+def _scored(folders: tuple[str, ...]) -> tuple[RunC, ...]:
+    """:func:`read_runs` of ``folders``, read once for the page and the figure.
 
     Raises:
         SummariseError: no folder of records, or no run of another performer in them.
     """
-    runs = read_runs(folders)
+    runs = tuple(read_runs(folders))
     if not runs:
         raise SummariseError(
             f"{', '.join(folders)}: no run of another performer with a per_frame.csv "
             "(rerun register_synthetic with student=...)"
         )
-    return page(runs, folders)
+    return runs
+
+
+def page_of(folders: Sequence[str]) -> str:
+    """The results page of the run records under ``folders`` (:func:`page`).
+
+    Raises:
+        SummariseError: no folder of records, or no run of another performer in them.
+    """
+    return page(_scored(tuple(folders)), folders)
+
+
+def figure_of(folders: Sequence[str], path: str | Path) -> None:
+    """Draw, for the run under ``folders`` whose truths lie farthest apart (the first such in
+    name order), every definition's best true C, the registration's C and stage 1's against
+    the video frame, to the PNG ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = _scored(tuple(folders))
+    run = max(runs, key=lambda r: max(truth_spread(r.truths).values()))
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=100)
+    for name, truths in run.truths.truths.items():
+        ax.plot(truths[0].numpy(), lw=2.5, alpha=0.7, label=f"true C: {name}")
+    ax.plot(_column(run.folder, "c").numpy(), "k-", lw=1.2, label="registration")
+    ax.plot(_column(run.folder, "c_stage1").numpy(), "k--", lw=1, label="stage 1")
+    ax.set_xlabel("video frame t'")
+    ax.set_ylabel("reference frame C(t')")
+    ax.set_title(
+        f"{_pair(run.truths)}, {run.cameras} camera(s), warp seed {run.truths.warp_seed}, "
+        f"seed {run.seed}",
+        fontsize=9,
+    )
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     return page_main(
-        argv, "python -m experiments.truth_definitions", __doc__.split("\n\n")[0], page_of
+        argv,
+        "python -m experiments.truth_definitions",
+        __doc__.split("\n\n")[0],
+        page_of,
+        figure_of,
     )
 
 

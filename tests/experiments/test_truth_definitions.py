@@ -206,7 +206,9 @@ def test_run_records_are_scored_against_every_definition_and_paged(tmp_path):
     _record(tmp_path / "runs" / "other", config, truth, truth + 3)
     _record(tmp_path / "runs" / "itself", {**config, "student": ""}, truth, truth)
     page = tmp_path / "page.md"
-    assert main([str(tmp_path / "runs"), "--to", str(page)]) == 0
+    figure = tmp_path / "truths.png"
+    assert main([str(tmp_path / "runs"), "--to", str(page), "--figure", str(figure)]) == 0
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = page.read_text()
     spread, scored = [
         [c.strip() for c in line.split("|")[1:-1]]
