@@ -19,6 +19,7 @@ from experiments.findings_calibration import (
     AngleRun,
     calibrate,
     error_parts,
+    finding_errors,
     leave_pair_out,
     main,
     pelvis_rows,
@@ -142,6 +143,22 @@ def test_a_record_with_its_c_reads_the_timing_error_from_its_reference(tmp_path)
     assert run.timing_error[2] == pytest.approx([0.0, 0.0])
     missing = read_angle_run(folder, {"reference": "no/such.bvh", "cameras": 1}, True)
     assert missing.timing_error is None
+
+
+def test_a_findings_error_is_its_mean_difference_against_the_true_mean_over_its_frames():
+    """Constant errors: the knee's finding errs by exactly its +10 / -10 in two runs (RMS
+    10, bias 0), the hip's by +4 in one; a 2-camera run is counted apart."""
+    runs = [
+        make_run(("a", "b"), 1, 10.0, 4.0, knee_truth=3.0),
+        make_run(("b", "a"), 1, -10.0, 0.0, knee_truth=-30.0),
+        make_run(("a", "b"), 2, 6.0, 0.0, knee_truth=3.0),
+    ]
+    errors = finding_errors(runs)
+    knee, hip = errors[1]["knee_angle_l"], errors[1]["hip_rotation_l"]
+    assert (knee.count, knee.rms, knee.mean) == (2, pytest.approx(10.0), pytest.approx(0.0))
+    assert (hip.count, hip.rms, hip.mean) == (1, pytest.approx(4.0), pytest.approx(4.0))
+    assert errors[2]["knee_angle_l"].rms == pytest.approx(6.0)
+    assert "hip_rotation_l" not in errors[2]  # no difference at all: no finding
 
 
 def _record(folder: Path, names, c, c_true) -> Path:
