@@ -59,7 +59,10 @@ __all__ = [
     "figure_of",
     "local_rotation_distance",
     "main",
+    "page",
+    "page_of",
     "pair_truths",
+    "read_runs",
     "scaled_position_distance",
     "truth_spread",
 ]
@@ -281,6 +284,9 @@ def _cell(values: Sequence[float]) -> str:
 
 
 def page(runs: Sequence[RunC], sources: Sequence[str]) -> str:
+    """The results page of ``runs`` (read from the folders ``sources``): the truths' spread
+    per synthetic student, what it does to the true differences, and each registration's C
+    against every definition."""
     names = list(DISTANCES)
     students = {(r.truths.student, r.truths.reference, r.truths.warp_seed): r.truths for r in runs}
     lines = [
