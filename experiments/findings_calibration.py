@@ -106,6 +106,26 @@ class AngleRun:
     def frame_rate(self) -> float:
         return 1.0 / float(np.median(np.diff(self.time_s))) if len(self.time_s) > 1 else 1.0
 
+    def findings(
+        self,
+        rules: FindingSettings,
+        table: MethodError | None = None,
+        motions_match: bool | None = None,
+    ) -> list[dict]:
+        """The run's largest differences as ``motion register`` states or withholds them
+        (:func:`motion.registration.export.stated_findings`) under ``rules`` and the
+        calibration ``table``; ``motions_match`` overrides the run's own verdict."""
+        match = self.motions_match if motions_match is None else motions_match
+        return stated_findings(
+            self.angles(),
+            torch.from_numpy(self.trusted),
+            self.frame_rate,
+            rules,
+            self.cameras,
+            match,
+            table=table,
+        )
+
     def angles(self) -> JointAngles:
         """The run's :class:`JointAngles` as far as findings read them (differences,
         uncertainties, times; the postures themselves are not recorded)."""
@@ -317,15 +337,7 @@ def score_run(run: AngleRun, rules: FindingSettings, table: MethodError | None =
     calibration ``table`` when ``rules.method_error_deg`` is none), scored against the truth
     (:func:`experiments.register_synthetic.finding_agreement`, and ``findings_found``: how
     many largest differences there were)."""
-    found = stated_findings(
-        run.angles(),
-        torch.from_numpy(run.trusted),
-        run.frame_rate,
-        rules,
-        run.cameras,
-        run.motions_match,
-        table=table,
-    )
+    found = run.findings(rules, table)
     truth = torch.from_numpy(run.truth)
     score = finding_agreement(found, torch.from_numpy(run.time_s), truth, run.coordinates)
     return score | {"findings_found": float(len(found))}
@@ -355,14 +367,7 @@ def finding_errors(runs: Sequence[AngleRun]) -> dict[int, dict[str, FindingError
     candidates = FindingSettings(method_error_deg=0.0, max_interval_deg=None)
     errors: dict[int, dict[str, list[float]]] = {}
     for run in runs:
-        found = stated_findings(
-            run.angles(),
-            torch.from_numpy(run.trusted),
-            run.frame_rate,
-            candidates,
-            run.cameras,
-            True,
-        )
+        found = run.findings(candidates, motions_match=True)
         truth, time_s = torch.from_numpy(run.truth), torch.from_numpy(run.time_s)
         for finding in found:
             true = true_mean(finding, time_s, truth, run.coordinates)
