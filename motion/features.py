@@ -31,6 +31,7 @@ __all__ = [
     "distance_to_edges",
     "edges",
     "foreground_masks",
+    "median_coverage",
     "native_stderr_silenced",
     "read_camera_videos",
     "read_video",
@@ -313,6 +314,49 @@ def distance_to_edges(edge_mask: Tensor, backend: str = "auto") -> Tensor:
             continue
         out[b, 0] = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return torch.from_numpy(out).to(edge_mask.device)
+
+
+def median_coverage(
+    frames: np.ndarray,
+    background: np.ndarray,
+    threshold: float = 30.0,
+    open_radius: int = 2,
+    close_radius: int = 4,
+) -> np.ndarray:
+    """Per pixel, the share of ``frames`` in which a moving body covers it: how far a
+    temporal median of those frames can be trusted as the background there.
+
+    The median of the frames is a pixel's background only where the person covers it in
+    fewer than half of them; past that it is the person's colour (walking toward or away
+    from the camera, the torso stays over the same pixels; balancing in place, all of the
+    body), and background subtraction against it loses the person there. The person's own
+    pixels cannot say so -- where the median holds them they do not differ from it -- so each
+    frame counts the bounding box of its largest region that differs from ``background`` by
+    more than ``threshold`` grey levels in some channel (opened and closed as
+    :func:`clean_foreground`): the changing parts of a body (limbs, the outline, the
+    median's ghost of it) bound where the body is.
+
+    Args:
+        frames: ``(N, H, W, 3)`` uint8, the frames ``background`` was learnt from.
+        background: ``(H, W, 3)`` uint8, e.g. their median.
+        threshold: grey levels.
+        open_radius, close_radius: morphological clean-up (pixels).
+
+    Returns:
+        ``(H, W)`` float64 in [0, 1].
+    """
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise ValueError(f"frames must be (N, H, W, 3) uint8; got {frames.shape} {frames.dtype}")
+    if background.shape != frames.shape[1:]:
+        raise ValueError(f"background must be {frames.shape[1:]}; got {background.shape}")
+    changed = np.abs(frames.astype(np.int16) - background.astype(np.int16)).max(-1) > threshold
+    covered = np.zeros(frames.shape[1:3], dtype=np.float64)
+    for mask in clean_foreground(changed, None, open_radius, close_radius):
+        count, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+        if count > 1:
+            x, y, w, h = stats[1 + np.argmax(stats[1:, cv2.CC_STAT_AREA]), :4]
+            covered[y : y + h, x : x + w] += 1
+    return covered / max(len(frames), 1)
 
 
 def foreground_masks(

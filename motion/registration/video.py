@@ -40,6 +40,7 @@ from motion.features import (
     distance_to_edges,
     edges,
     foreground_masks,
+    median_coverage,
     read_camera_videos,
     track_person,
 )
@@ -49,11 +50,13 @@ from motion.settings import SettingError, Settings, coerce, setting, show
 
 __all__ = [
     "FIELD_OF_VIEW_DEG",
+    "HELD_SHARE_WARNING",
     "VideoInput",
     "VideoSettings",
     "VideoSettingsError",
     "default_camera",
     "features_from_videos",
+    "held_share",
     "with_silhouettes",
 ]
 
@@ -525,23 +528,70 @@ def _check_backgrounds(settings: VideoSettings, paths: list[Path], probes: list[
 
 def _foreground_of(
     path: Path, video: np.ndarray, probe: _Probe, settings: VideoSettings, plate=None
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray | None]:
     """The foreground of the kept frames ``video``, against the clean ``plate`` (native
     size) if given, else a background from frames of the whole file
-    (``settings.background_frames``) or, with 0, the kept frames' own median."""
+    (``settings.background_frames``) or, with 0, the kept frames' own median; and, for a
+    median, the pixels where it holds the person rather than the scene
+    (:func:`_median_holds`; ``None`` with a plate)."""
     size = (video.shape[2], video.shape[1])
     if plate is not None:
         if (plate.shape[1], plate.shape[0]) != size:
             plate = cv2.resize(plate, size, interpolation=cv2.INTER_AREA)
-        return _foreground(video, plate, settings)
+        return _foreground(video, plate, settings), None
     if settings.background_frames == 0:
-        return foreground_masks(
+        fg = foreground_masks(
             video, settings.background, settings.threshold, _HISTORY, _OPEN_PX, _CLOSE_PX
         )
+        return fg, _median_holds(video, np.median(video, axis=0).astype(np.uint8))
     sample = _background_sample(path, probe.frames, settings.background_frames, size)
     if len(sample) == 0:
         sample = video
-    return _foreground(video, np.median(sample, axis=0).astype(np.uint8), settings)
+    background = np.median(sample, axis=0).astype(np.uint8)
+    return _foreground(video, background, settings), _median_holds(sample, background)
+
+
+#: grey levels by which a frame differs from the median where :func:`_median_holds` counts a
+#: moving body (the median method's own default threshold)
+_HELD_GREY = 30.0
+#: a temporal median is the person's colour, not the scene's, at pixels the person covers in
+#: at least half of the frames (the median's breakdown point)
+_HELD_COVERAGE = 0.5
+#: the warning of :func:`_held_warning` is given when on average at least this share of the
+#: person's bounding box lies where the median holds them: walking straight toward a camera
+#: (the rendered CMU jog and walks, 0.36-0.50 of the box) or balancing in place (the
+#: Pose2Sim trial, 0.27), not crossing its view (the Sports2D walker, 0.00)
+HELD_SHARE_WARNING = 0.2
+
+
+def _median_holds(frames: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: where the median ``background`` of ``frames`` is the person's colour
+    (:func:`motion.features.median_coverage` at least :data:`_HELD_COVERAGE`)."""
+    coverage = median_coverage(frames, background, _HELD_GREY, _OPEN_PX, _CLOSE_PX)
+    return coverage >= _HELD_COVERAGE
+
+
+def held_share(person: np.ndarray, held: np.ndarray) -> float:
+    """The mean over the frames with a person (``person`` ``(T, H, W)`` bool) of the share of
+    their bounding box on ``held`` ``(H, W)`` pixels (0 when no frame has a person)."""
+    shares = []
+    for mask in person:
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if len(rows):
+            box = held[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+            shares.append(float(box.mean()))
+    return float(np.mean(shares)) if shares else 0.0
+
+
+def _held_warning(path: Path, share: float) -> str:
+    return (
+        f"{path.name}: the person stays over the same pixels in most of the frames the "
+        f"background was learnt from ({100 * share:.0f} % of their box, on average, lies "
+        "where the median of those frames is the person: walking toward or away from the "
+        "camera, or in place), so background subtraction loses them there and the "
+        "silhouettes miss parts of the body wherever the person detector's mask does not "
+        "stand in; a picture of the empty scene (--background) gives clean ones"
+    )
 
 
 def _edge_distances(frames: np.ndarray, person: np.ndarray, settings: VideoSettings) -> np.ndarray:
@@ -639,7 +689,7 @@ def features_from_videos(
                 f"{path.name}: {scaled[c][0]} x {scaled[c][1]} px at the working scale, padded "
                 f"on the right and bottom to {width} x {height}"
             )
-        fg = _foreground_of(path, video, probes[c], settings, plates[c])
+        fg, held = _foreground_of(path, video, probes[c], settings, plates[c])
         person = _follow(fg, starts[c], settings)
         if not person.any():
             raise RegistrationError(
@@ -648,6 +698,9 @@ def features_from_videos(
                 "background); the person must move in front of a static camera; point at "
                 "them with --person x,y (original pixels) or lower min_area / threshold"
             )
+        share = 0.0 if held is None else held_share(person, held)
+        if share >= HELD_SHARE_WARNING:
+            warnings.append(_held_warning(path, share))
         video = _pad(video, height, width)
         person = _pad(person, height, width)
         sils.append(person)

@@ -13,6 +13,7 @@ from motion.features import (
     distance_to_edges,
     edges,
     foreground_masks,
+    median_coverage,
     read_camera_videos,
     read_video,
     select_person,
@@ -187,3 +188,46 @@ def test_track_person_keeps_the_chosen_one_when_another_is_larger():
     tracked = track_person(masks, start=(8.0, 10.0))
     assert tracked[:, 5:15].any(axis=(1, 2)).all()
     assert not tracked[:, 20:38].any()
+
+
+def _frames_with_boxes(boxes, size=(60, 80), grey=100, colour=200) -> np.ndarray:
+    """``(N, H, W, 3)`` uint8: a flat scene with one filled box ``(x, y, w, h)`` per frame."""
+    frames = np.full((len(boxes), *size, 3), grey, dtype=np.uint8)
+    for frame, (x, y, w, h) in zip(frames, boxes, strict=True):
+        frame[y : y + h, x : x + w] = colour
+    return frames
+
+
+def test_median_coverage_counts_each_frames_largest_changed_region():
+    # a body over the same place in 30 of 50 frames, elsewhere in 20; a speck of noise
+    # beside it in every frame is not the largest region and counts nowhere
+    boxes = [(10, 10, 12, 20)] * 30 + [(50, 30, 12, 20)] * 20
+    frames = _frames_with_boxes(boxes)
+    frames[:, 50:52, 5:7] = 0
+    background = np.full(frames.shape[1:], 100, dtype=np.uint8)
+    coverage = median_coverage(frames, background, 30.0, 0, 0)
+    assert coverage[15, 15] == pytest.approx(30 / 50)
+    assert coverage[35, 55] == pytest.approx(20 / 50)
+    assert coverage[51, 6] == 0 and coverage[0, 0] == 0
+    # only the box counts, outline included, nothing beside it
+    assert coverage[10:30, 10:22].min() == pytest.approx(0.6) and coverage[9, 10] == 0
+
+
+def test_median_coverage_marks_where_a_median_holds_the_person():
+    # a body whose surface changes from frame to frame (limbs, clothes) over one place in 30
+    # of 50 frames, elsewhere in 20: the temporal median there is the body, not the scene
+    rng = np.random.default_rng(0)
+    boxes = [(10, 10, 12, 20)] * 30 + [(50, 30, 12, 20)] * 20
+    frames = _frames_with_boxes(boxes)
+    for frame, (x, y, w, h) in zip(frames, boxes, strict=True):
+        frame[y : y + h, x : x + w] = rng.integers(150, 256, (h, w, 1), dtype=np.uint8)
+    median = np.median(frames, axis=0).astype(np.uint8)
+    assert (median[10:30, 10:22] >= 150).all()
+    coverage = median_coverage(frames, median, 30.0, 0, 0)
+    # where it stays, its box counts in its own frames at least (its ghost in the others):
+    # held; where it only passes, not
+    assert coverage[15, 15] >= 30 / 50 and coverage[35, 55] <= 20 / 50
+    with pytest.raises(ValueError, match=r"background must be \(60, 80, 3\)"):
+        median_coverage(frames, median[:10], 30.0)
+    with pytest.raises(ValueError, match="frames must be"):
+        median_coverage(frames[..., 0], median, 30.0)

@@ -20,6 +20,7 @@ from motion.registration.video import (
     VideoSettingsError,
     default_camera,
     features_from_videos,
+    held_share,
 )
 from tests.conftest import SHARED_DATA, requires_shared_data
 
@@ -159,10 +160,15 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
     median = features_from_videos(tmp_path / "still.avi", None, VideoSettings(width=None))
     sil = median.features.observation.silhouette[0, :, 0].numpy() > 0.5
     assert _iou(sil, masks).mean() < 0.5
+    # ... and says so, naming the file and the remedy
+    (warning,) = median.warnings
+    assert warning.startswith("still.avi: the person stays over the same pixels")
+    assert "--background" in warning
     plate = tmp_path / "empty.png"
     cv2.imwrite(str(plate), cv2.cvtColor(_background(), cv2.COLOR_RGB2BGR))
     st = VideoSettings(width=80, backgrounds=[str(plate)])
     clean = features_from_videos(tmp_path / "still.avi", None, st)
+    assert clean.warnings == []
     sil = clean.features.observation.silhouette[0, :, 0].numpy() > 0.5
     want = np.stack(
         [cv2.resize(m.astype(np.uint8), (80, 60), interpolation=cv2.INTER_AREA) for m in masks]
@@ -188,6 +194,23 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
     (tmp_path / "junk.png").write_bytes(b"not a picture")
     junk = VideoSettings(backgrounds=[str(tmp_path / "junk.png")])
     _raises(VideoError, r"junk\.png: not an image file", [tmp_path / "still.avi"], None, junk)
+
+
+def test_a_person_crossing_the_view_gets_no_warning_about_the_background(one):
+    path, _ = one
+    assert features_from_videos(path, None, VideoSettings(width=None)).warnings == []
+    kept = VideoSettings(width=None, background_frames=0)
+    assert features_from_videos(path, None, kept).warnings == []
+
+
+def test_held_share_is_the_mean_share_of_the_persons_box_on_held_pixels():
+    held = np.zeros((10, 10), dtype=bool)
+    held[:, :5] = True
+    person = np.zeros((3, 10, 10), dtype=bool)
+    person[0, 2:4, 3:7] = True  # half its box held
+    person[1, 8, 0] = True  # all of it
+    assert held_share(person, held) == pytest.approx((0.5 + 1.0) / 2)
+    assert held_share(np.zeros((2, 10, 10), dtype=bool), held) == 0.0
 
 
 def test_intrinsics_scale_with_the_working_width(tmp_path):
