@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "BACKGROUND_SUFFIX",
     "MAX_SCALE",
     "VideoError",
     "clean_foreground",
@@ -38,6 +39,12 @@ __all__ = [
     "select_person",
     "track_person",
 ]
+
+
+#: a picture of a camera's empty scene (a clean plate) beside its video is named
+#: ``<video's name without suffix><BACKGROUND_SUFFIX>`` (``cam1.avi`` -> ``cam1_background.png``):
+#: ``motion synth`` writes it so, ``motion register`` finds it so
+BACKGROUND_SUFFIX = "_background.png"
 
 
 class VideoError(ValueError):

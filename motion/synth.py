@@ -31,7 +31,7 @@ from motion.bodyparts import BodyModel
 from motion.bvh import read_bvh
 from motion.cameras import CameraRig, save_pose2sim_calibration
 from motion.draw import PART_COLOURS, write_video
-from motion.features import edges
+from motion.features import BACKGROUND_SUFFIX, edges
 from motion.geometry import euler_to_matrix, rotation_about_y
 from motion.kinematics import FKResult, Skeleton, forward_kinematics, local_rotations
 from motion.render import ProjectedParts, label_map, project_parts
@@ -55,8 +55,8 @@ __all__ = [
 #: the scene's colour behind the body (RGB in [0, 1])
 BACKGROUND_RGB = (0.85, 0.85, 0.8)
 #: with the videos, each camera's empty scene (a clean plate, as one films before the person
-#: walks in) is written as ``<camera><BACKGROUND_SUFFIX>``
-BACKGROUND_SUFFIX = "_background.png"
+#: walks in) is written as ``<camera><BACKGROUND_SUFFIX>`` (:data:`motion.features.
+#: BACKGROUND_SUFFIX`, where ``motion register`` looks for it)
 #: video frames coloured (and their edges found) at once: each image is its own, so only the
 #: uint8 frames of the whole video are kept, never float colour fields of every frame
 COLOUR_CHUNK = 64

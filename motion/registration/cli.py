@@ -177,7 +177,8 @@ def add_register_parser(sub) -> argparse.ArgumentParser:
         action="append",
         default=[],
         help="a picture of the empty scene (clean plate), one per --video in the same order "
-        "(default: the background is learnt from the video itself)",
+        "(default: the picture named after each video with _background.png beside it, as "
+        "motion synth writes it, else the background is learnt from the video itself)",
     )
     p.add_argument(
         "--keypoints",

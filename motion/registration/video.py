@@ -33,6 +33,7 @@ import torch
 from motion.body.observation import Observation
 from motion.cameras import CameraRig, resized_rig
 from motion.features import (
+    BACKGROUND_SUFFIX,
     MOG2_FOREGROUND,
     MOG2_SHADOW,
     VideoError,
@@ -57,6 +58,7 @@ __all__ = [
     "default_camera",
     "features_from_videos",
     "held_share",
+    "plates_beside",
     "with_silhouettes",
 ]
 
@@ -126,6 +128,12 @@ class VideoSettings(Settings):
         "balancing in place)",
         min_length=1,
         example="cam1_empty.png,cam2_empty.png",
+    )
+    find_backgrounds: bool = setting(
+        True,
+        "without backgrounds, a picture named after each video with _background.png "
+        "(cam1.avi -> cam1_background.png, as motion synth writes it) beside it is that "
+        "camera's empty scene, when every video has one",
     )
     threshold: float = setting(
         30.0,
@@ -502,18 +510,38 @@ def _foreground(frames: np.ndarray, background: np.ndarray, settings: VideoSetti
     return clean_foreground(diff > settings.threshold, None, _OPEN_PX, _CLOSE_PX)
 
 
-def _check_backgrounds(settings: VideoSettings, paths: list[Path], probes: list[_Probe]):
-    """The clean plates of ``settings.backgrounds`` as ``(H, W, 3)`` uint8 RGB at each video's
-    size (``None`` per camera when not given)."""
-    if settings.backgrounds is None:
-        return [None] * len(paths)
-    if len(settings.backgrounds) != len(paths):
+def plates_beside(paths: list[Path]) -> list[Path] | None:
+    """The clean plate beside each video (``<stem>`` + :data:`motion.features.
+    BACKGROUND_SUFFIX`), or ``None`` unless every video has one."""
+    found = [path.with_name(path.stem + BACKGROUND_SUFFIX) for path in paths]
+    return found if all(p.is_file() for p in found) else None
+
+
+def _check_backgrounds(
+    settings: VideoSettings, paths: list[Path], probes: list[_Probe]
+) -> tuple[list, str]:
+    """The clean plates of ``settings.backgrounds`` (or, with ``find_backgrounds``, those
+    beside the videos: :func:`plates_beside`) as ``(H, W, 3)`` uint8 RGB at each video's size
+    (``None`` per camera when there are none), and a note naming the plates found (``""``
+    when given or none)."""
+    names, note = settings.backgrounds, ""
+    if names is None and settings.find_backgrounds:
+        beside = plates_beside(paths)
+        if beside is not None:
+            names = [str(p) for p in beside]
+            note = (
+                "background: the picture of the empty scene beside each video ("
+                + ", ".join(p.name for p in beside)
+                + "), found by its name (video.find_backgrounds=false: learnt from the video)"
+            )
+    if names is None:
+        return [None] * len(paths), note
+    if len(names) != len(paths):
         raise VideoSettingsError(
-            f"backgrounds must name one picture per video ({len(paths)}); got "
-            f"{len(settings.backgrounds)}"
+            f"backgrounds must name one picture per video ({len(paths)}); got {len(names)}"
         )
     plates = []
-    for name, path, pr in zip(settings.backgrounds, paths, probes, strict=True):
+    for name, path, pr in zip(names, paths, probes, strict=True):
         image = cv2.imread(name, cv2.IMREAD_COLOR) if Path(name).is_file() else None
         if image is None:
             raise VideoError(f"{name}: not an image file OpenCV can read (background of {path})")
@@ -523,7 +551,7 @@ def _check_backgrounds(settings: VideoSettings, paths: list[Path], probes: list[
                 f"{path.name}'s frames are {pr.width} x {pr.height}"
             )
         plates.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-    return plates
+    return plates, note
 
 
 def _foreground_of(
@@ -590,7 +618,8 @@ def _held_warning(path: Path, share: float) -> str:
         "where the median of those frames is the person: walking toward or away from the "
         "camera, or in place), so background subtraction loses them there and the "
         "silhouettes miss parts of the body wherever the person detector's mask does not "
-        "stand in; a picture of the empty scene (--background) gives clean ones"
+        "stand in; a picture of the empty scene, given with --background or saved beside "
+        f"the video as {path.stem}{BACKGROUND_SUFFIX}, gives clean ones"
     )
 
 
@@ -652,7 +681,7 @@ def features_from_videos(
     probes = [_probe(p) for p in paths]
     rate = _check_probes(paths, probes, settings)
     _check_person(settings, paths, probes)
-    plates = _check_backgrounds(settings, paths, probes)
+    plates, plate_note = _check_backgrounds(settings, paths, probes)
 
     widest = max(pr.width for pr in probes)
     scale = 1.0 if settings.width is None else min(1.0, settings.width / widest)
@@ -668,7 +697,7 @@ def features_from_videos(
     native = [(pr.width, pr.height) for pr in probes]
     scaled = [(v.shape[2], v.shape[1]) for v in videos]
     width, height = max(s[0] for s in scaled), max(s[1] for s in scaled)
-    notes = []
+    notes = [plate_note] if plate_note else []
     rig = cameras
     if rig is None:
         rig = default_camera(*native[0], name=paths[0].stem)

@@ -21,6 +21,7 @@ from motion.registration.video import (
     default_camera,
     features_from_videos,
     held_share,
+    plates_beside,
 )
 from tests.conftest import SHARED_DATA, requires_shared_data
 
@@ -163,7 +164,7 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
     # ... and says so, naming the file and the remedy
     (warning,) = median.warnings
     assert warning.startswith("still.avi: the person stays over the same pixels")
-    assert "--background" in warning
+    assert "--background or saved beside the video as still_background.png" in warning
     plate = tmp_path / "empty.png"
     cv2.imwrite(str(plate), cv2.cvtColor(_background(), cv2.COLOR_RGB2BGR))
     st = VideoSettings(width=80, backgrounds=[str(plate)])
@@ -174,6 +175,17 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
         [cv2.resize(m.astype(np.uint8), (80, 60), interpolation=cv2.INTER_AREA) for m in masks]
     )
     assert _iou(sil, want > 0).min() > 0.8
+    # the plate beside the video under the video's name is found without being given
+    cv2.imwrite(
+        str(tmp_path / "still_background.png"), cv2.cvtColor(_background(), cv2.COLOR_RGB2BGR)
+    )
+    found = features_from_videos(tmp_path / "still.avi", None, VideoSettings(width=80))
+    assert found.warnings == [] and "still_background.png), found by its name" in found.note
+    assert np.array_equal(
+        found.features.observation.silhouette.numpy(), clean.features.observation.silhouette.numpy()
+    )
+    off = VideoSettings(width=None, find_backgrounds=False)
+    assert len(features_from_videos(tmp_path / "still.avi", None, off).warnings) == 1
     two = VideoSettings(backgrounds=[str(plate), str(plate)])
     _raises(
         VideoSettingsError,
@@ -201,6 +213,14 @@ def test_a_person_crossing_the_view_gets_no_warning_about_the_background(one):
     assert features_from_videos(path, None, VideoSettings(width=None)).warnings == []
     kept = VideoSettings(width=None, background_frames=0)
     assert features_from_videos(path, None, kept).warnings == []
+
+
+def test_plates_are_found_beside_every_video_or_not_at_all(tmp_path):
+    videos = [tmp_path / "a.avi", tmp_path / "b.mp4"]
+    (tmp_path / "a_background.png").write_bytes(b"")
+    assert plates_beside(videos) is None
+    (tmp_path / "b_background.png").write_bytes(b"")
+    assert plates_beside(videos) == [tmp_path / "a_background.png", tmp_path / "b_background.png"]
 
 
 def test_held_share_is_the_mean_share_of_the_persons_box_on_held_pixels():
