@@ -22,7 +22,8 @@ file, an override or a sweep entry -- raises :class:`ConfigError`
 (or ``command line``), the key, what was expected and what was given.
 
 Precedence: schema defaults < the file < ``tiny``'s reductions (the schema's ``TINY``) < the
-command line < each sweep entry; a key given on the command line that a sweep entry also sets
+command line < each sweep entry, except that ``tiny``'s reductions replace a sweep entry's own
+value of their keys too (a tiny run stays tiny whatever its entries say); a key given on the command line that a sweep entry also sets
 is an error (the sweep would silently win). Only this package (and the command lines) read
 config files; ``pgm`` and ``motion``'s functions take plain arguments.
 """
@@ -216,6 +217,20 @@ def load_config(
                 f"{at}: sweep[{i}] repeats sweep[{labels[label]}] ({label}); expected each run once"
             )
         labels[label] = i
-    if config.tiny and len(sweep) > 2:  # every entry checked above; the first and last run
-        sweep = [sweep[0], sweep[-1]]
+    if config.tiny:
+        sweep = _tiny_sweep(sweep, schema.TINY, overrides)
     return name, config, [dict(entry) for entry in sweep]
+
+
+def _tiny_sweep(sweep: list[dict], tiny: dict, overrides: dict) -> list[dict]:
+    """A tiny run's sweep: its first and last entries (every entry was checked), each with
+    ``tiny``'s reductions over its own values as over the rest of the file's (an entry's
+    ``frames: 0`` would otherwise undo ``frames: 8``), the command line's kept; one entry where
+    the two then coincide."""
+    kept = [sweep[0], sweep[-1]] if len(sweep) > 2 else sweep
+    reduced = []
+    for entry in kept:
+        entry = {**entry, **{k: v for k, v in tiny.items() if k in entry and k not in overrides}}
+        if all(sweep_label(entry) != sweep_label(other) for other in reduced):
+            reduced.append(entry)
+    return reduced

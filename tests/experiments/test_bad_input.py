@@ -581,3 +581,20 @@ def test_tiny_runs_a_sweeps_first_and_last_entries_after_checking_them_all(tmp_p
     path.write_text(f"experiment: stick_time\nsweep:\n{entries}  - {{fps: -1}}\n  - {{seed: 9}}\n")
     with pytest.raises(ConfigError, match=r"sweep\[5\]"):
         load_config(path, SCHEMAS, {"tiny": True})
+
+
+def test_tiny_reduces_a_sweep_entrys_own_values_too(tmp_path):
+    """A sweep entry's own value of a key that tiny reduces (a whole video, ``frames: 0`` in
+    register_movements) does not undo tiny; entries that then coincide run once."""
+    path = tmp_path / "sweep.yaml"
+    path.write_text(
+        "experiment: stick_pose\nsweep:\n  - {seed: 0, frames: 40}\n  - {seed: 1}\n"
+        "  - {seed: 2, frames: 50}\n"
+    )
+    assert load_config(path, SCHEMAS, {"tiny": True})[2] == [
+        {"seed": 0, "frames": 12},
+        {"seed": 2, "frames": 12},
+    ]
+    assert [e.get("frames") for e in load_config(path, SCHEMAS)[2]] == [40, None, 50]
+    path.write_text("experiment: stick_pose\nsweep:\n  - {frames: 40}\n  - {frames: 50}\n")
+    assert load_config(path, SCHEMAS, {"tiny": True})[2] == [{"frames": 12}]
