@@ -102,16 +102,20 @@ def run(cfg: PolishBasinConfig):
         warp=rendering.warp,
         seed=cfg.warp_seed,
     )
-    seq = synthesize(cfg.reference, synth, student=cfg.student)
+    # the truth is the whole video's (a DP over all its frames); only the frames used are drawn
+    whole = synthesize(cfg.reference, synth, student=cfg.student, images=False)
+    seq = synthesize(cfg.reference, synth, student=cfg.student, frames=cfg.frames or None)
     reference, student = Reference.from_bvh(cfg.reference), Reference.from_bvh(cfg.student)
     if student.skeleton.names != reference.skeleton.names:
         raise ConfigError(
             f"student: {cfg.student} has other joints than {cfg.reference}; expected the same"
         )
-    truth = synthetic_truth(seq, reference, student)
+    truth = synthetic_truth(whole, reference, student)
     video = features_from_sequence(seq, keypoints=cfg.keypoints)
-    if cfg.frames > video.num_frames:
-        raise ConfigError(f"frames must be <= {video.num_frames} (the video's); got {cfg.frames}")
+    if cfg.frames > whole.meta["num_video_frames"]:
+        raise ConfigError(
+            f"frames must be <= {whole.meta['num_video_frames']} (the video's); got {cfg.frames}"
+        )
     n = cfg.frames
     video = video.cut(slice(0, n))
     c, local, position = truth.C[:n], truth.local[:n], truth.position[:n]

@@ -432,8 +432,12 @@ def synth_config(cfg: SyntheticStudentConfig) -> SynthConfig:
 
 def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
     """The synthetic student of ``cfg`` rendered (:func:`motion.synth.synthesize`), its video
-    features and its truth (:func:`synthetic_truth`), cut to ``cfg.frames`` if set."""
-    seq = synthesize(cfg.reference, synth_config(cfg), student=cfg.student or None)
+    features and its truth (:func:`synthetic_truth`), cut to ``cfg.frames`` if set: only
+    those frames are rendered, the truth is the whole video's (a DP over all its frames),
+    then cut."""
+    synth, other = synth_config(cfg), cfg.student or None
+    seq = synthesize(cfg.reference, synth, student=other, frames=cfg.frames or None)
+    whole = synthesize(cfg.reference, synth, student=other, images=False) if cfg.frames else seq
     reference = Reference.from_bvh(cfg.reference)
     student = Reference.from_bvh(cfg.student) if cfg.student else None
     if student is not None and student.skeleton.names != reference.skeleton.names:
@@ -441,7 +445,7 @@ def synthetic_inputs(cfg: SyntheticStudentConfig) -> SyntheticInputs:
             f"student: {cfg.student} has other joints than {cfg.reference}; expected the "
             "same skeleton (the true A compares joints by name)"
         )
-    truth = synthetic_truth(seq, reference, student)
+    truth = synthetic_truth(whole, reference, student)
     video = features_from_sequence(seq, keypoints=cfg.keypoints)
     if cfg.frames:
         video, truth = _first(video, truth, cfg.frames)

@@ -176,7 +176,7 @@ def pair_truths(cfg: SyntheticStudentConfig) -> PairTruths:
     ``cfg.frames``) under every definition in :data:`DISTANCES`."""
     if not cfg.student:
         raise ValueError("pair_truths: expected a student of another performer (student=...)")
-    seq = synthesize(cfg.reference, synth_config(cfg), student=cfg.student)
+    seq = synthesize(cfg.reference, synth_config(cfg), student=cfg.student, images=False)
     reference = Reference.from_bvh(cfg.reference)
     student = Reference.from_bvh(cfg.student)
     shown = torch.from_numpy(seq.arrays["C_shown"]).long()

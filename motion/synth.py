@@ -235,9 +235,23 @@ def _rig(cfg: SynthConfig, centre: torch.Tensor, distance: float) -> CameraRig:
 
 
 def synthesize(
-    reference: str | Path, config: SynthConfig | None = None, student: str | Path | None = None
+    reference: str | Path,
+    config: SynthConfig | None = None,
+    student: str | Path | None = None,
+    frames: int | None = None,
+    images: bool = True,
 ) -> Sequence:
     """Generate a synthetic sequence.
+
+    Args:
+        reference: the reference BVH; config: :class:`SynthConfig` (defaults otherwise);
+            student: another performer's BVH (then no true C).
+        frames: keep only the first ``frames`` video frames (``None``: all): every per-frame
+            array is cut to them and only they are rendered, while what the frames share --
+            the time warp, the articulation, the random draws, the cameras placed around the
+            whole motion -- is the whole video's, so they are exactly its first frames.
+        images: ``False`` renders nothing: the sequence has no ``silhouettes``, ``labels``,
+            ``edges`` or ``frames`` (its poses and joints only, for a truth at little cost).
 
     Returns:
         :class:`Sequence` whose arrays are: ``C_true`` (T',) long reference frames (-1 if
@@ -318,51 +332,28 @@ def synthesize(
     if distance is None:
         distance = 2.5 + float((pos[..., 0, :] - centre)[..., [0, 2]].norm(dim=-1).max())
     rig = _rig(cfg, centre, distance)
-    w, h = cfg.size
     joints2d, depth = rig.project(pos)  # (T', C, J, 2), (T', C, J)
     _check_in_front(depth, skel.names, rig.names, distance)
     joints2d = joints2d.transpose(0, 1)  # (C, T', J, 2)
     noisy = joints2d + cfg.noise_px * torch.randn(joints2d.shape, generator=g, dtype=torch.float64)
 
-    parts = project_parts(rig, seg, model.radii * cfg.body_scale)  # (T', C, P, 2, *)
-    labels = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.int8)
-    for s in range(0, num_video, 8):  # chunks keep the (frames, C, P, H*W) fields small
-        sl = slice(s, min(s + 8, num_video))
-        chunk = ProjectedParts(parts.ends[sl], parts.radii[sl], parts.depth[sl])
-        lab, _ = label_map(chunk, h, w)
-        labels[:, sl] = lab.transpose(0, 1).to(torch.int8)
-    sil = labels >= 0
-    shade = torch.from_numpy(PART_COLOURS.astype(np.float32) / 255.0)
-    bg = torch.tensor(BACKGROUND_RGB)
-    table = torch.cat([bg[None], shade])
-    # colour frames and their edges a chunk of frames at a time (COLOUR_CHUNK)
-    frames = np.empty((cfg.cameras, num_video, h, w, 3), dtype=np.uint8)
-    edge = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.bool)
-    for s in range(0, num_video, COLOUR_CHUNK):
-        sl = slice(s, min(s + COLOUR_CHUNK, num_video))
-        rgb = table[(labels[:, sl].long() + 1)]  # (C, n, H, W, 3)
-        grey = rgb.mean(-1).reshape(-1, 1, h, w)
-        edge[:, sl] = edges(grey, 0.1, 0.3).reshape(cfg.cameras, -1, h, w)
-        frames[:, sl] = (rgb.numpy() * 255).round().astype(np.uint8)
-
+    kept = num_video if frames is None else max(1, min(frames, num_video))
+    first = slice(0, kept)
     arrays = {
-        "C_true": (c_true if student is None else torch.full_like(c_true, -1)).numpy(),
-        "C_shown": shown.numpy(),
-        "replaced": replaced.numpy(),
-        "A_deg": a_deg.numpy(),
-        "T_yaw_rad": yaw.numpy(),
-        "T_translation_m": trans.numpy(),
-        "joints3d": pos.numpy(),
-        "joints2d": joints2d.numpy(),
-        "joints2d_noisy": noisy.numpy(),
-        "silhouettes": sil.numpy(),
-        "labels": labels.numpy(),
-        "edges": edge.numpy(),
-        "frames": frames,
-        "K": rig.K.numpy(),
-        "R": rig.R.numpy(),
-        "t": rig.t.numpy(),
+        "C_true": (c_true if student is None else torch.full_like(c_true, -1))[first].numpy(),
+        "C_shown": shown[first].numpy(),
+        "replaced": replaced[first].numpy(),
+        "A_deg": a_deg[first].numpy(),
+        "T_yaw_rad": yaw[first].numpy(),
+        "T_translation_m": trans[first].numpy(),
+        "joints3d": pos[first].numpy(),
+        "joints2d": joints2d[:, first].numpy(),
+        "joints2d_noisy": noisy[:, first].numpy(),
     }
+    if images:
+        parts = project_parts(rig, seg[first], model.radii * cfg.body_scale)  # (n, C, P, 2, *)
+        arrays.update(_images(cfg, parts))
+    arrays.update({"K": rig.K.numpy(), "R": rig.R.numpy(), "t": rig.t.numpy()})
     meta = {
         "format": "motionreg synthetic sequence v1",
         "reference": str(reference),
@@ -370,7 +361,7 @@ def synthesize(
         "config": asdict(cfg),
         "reference_rate_hz": source.frame_rate,
         "video_rate_hz": cfg.fps,
-        "num_video_frames": num_video,
+        "num_video_frames": kept,
         "num_reference_frames": num_ref,
         "joint_names": skel.names,
         "part_names": model.part_names,
@@ -384,6 +375,37 @@ def synthesize(
         "shapes": {k: list(v.shape) for k, v in arrays.items()},
     }
     return Sequence(arrays, meta)
+
+
+def _images(cfg: SynthConfig, parts: ProjectedParts) -> dict[str, np.ndarray]:
+    """The rendered ``silhouettes``, ``labels``, ``edges`` and colour ``frames`` of the
+    projected body ``parts`` (``(T', C, P, ...)``), each ``(C, T', H, W[, 3])``."""
+    w, h = cfg.size
+    num_video = parts.ends.shape[0]
+    labels = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.int8)
+    for s in range(0, num_video, 8):  # chunks keep the (frames, C, P, H*W) fields small
+        sl = slice(s, min(s + 8, num_video))
+        chunk = ProjectedParts(parts.ends[sl], parts.radii[sl], parts.depth[sl])
+        lab, _ = label_map(chunk, h, w)
+        labels[:, sl] = lab.transpose(0, 1).to(torch.int8)
+    shade = torch.from_numpy(PART_COLOURS.astype(np.float32) / 255.0)
+    bg = torch.tensor(BACKGROUND_RGB)
+    table = torch.cat([bg[None], shade])
+    # colour frames and their edges a chunk of frames at a time (COLOUR_CHUNK)
+    frames = np.empty((cfg.cameras, num_video, h, w, 3), dtype=np.uint8)
+    edge = torch.empty(cfg.cameras, num_video, h, w, dtype=torch.bool)
+    for s in range(0, num_video, COLOUR_CHUNK):
+        sl = slice(s, min(s + COLOUR_CHUNK, num_video))
+        rgb = table[(labels[:, sl].long() + 1)]  # (C, n, H, W, 3)
+        grey = rgb.mean(-1).reshape(-1, 1, h, w)
+        edge[:, sl] = edges(grey, 0.1, 0.3).reshape(cfg.cameras, -1, h, w)
+        frames[:, sl] = (rgb.numpy() * 255).round().astype(np.uint8)
+    return {
+        "silhouettes": (labels >= 0).numpy(),
+        "labels": labels.numpy(),
+        "edges": edge.numpy(),
+        "frames": frames,
+    }
 
 
 #: Largest memory the rendered images of one sequence may take (about 24 bytes per pixel of

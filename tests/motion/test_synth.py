@@ -147,3 +147,25 @@ def test_a_sequence_with_videos_carries_its_calibration(tmp_path):
         torch.testing.assert_close(getattr(back, key), getattr(want, key), rtol=1e-9, atol=1e-12)
     no_videos = synthesize(BUNDLED, SynthConfig(size=[32, 24], focal_px=60, fps=5))
     assert all(f.suffix in (".npz", ".json") for f in sequence_files(no_videos.meta, tmp_path))
+
+
+def test_the_first_frames_alone_are_the_whole_videos_first_frames():
+    """``frames=n`` renders only the first n frames, and they are exactly the whole video's
+    (the warp, the draws and the cameras are the whole motion's); ``images=False`` gives the
+    same poses and joints without rendering."""
+    cfg = SynthConfig(cameras=2, size=[64, 48], fps=12, articulation={"LeftLeg": 20.0})
+    whole = synthesize(BUNDLED, cfg)
+    cut = synthesize(BUNDLED, cfg, frames=5)
+    bare = synthesize(BUNDLED, cfg, images=False)
+    assert set(cut.arrays) == set(whole.arrays)
+    assert set(whole.arrays) - set(bare.arrays) == {"silhouettes", "labels", "edges", "frames"}
+    by_camera = {"joints2d", "joints2d_noisy", "silhouettes", "labels", "edges", "frames"}
+    for key, array in whole.arrays.items():
+        if key in ("K", "R", "t"):
+            expected = array
+        else:
+            expected = array[:, :5] if key in by_camera else array[:5]
+        assert np.array_equal(cut.arrays[key], expected), key
+        if key in bare.arrays:
+            assert np.array_equal(bare.arrays[key], array), key
+    assert cut.meta["num_video_frames"] == 5 and cut.meta["shapes"]["frames"][1] == 5
