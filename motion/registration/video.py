@@ -587,8 +587,10 @@ _HELD_GREY = 30.0
 _HELD_COVERAGE = 0.5
 #: the warning of :func:`_held_warning` is given when on average at least this share of the
 #: person's bounding box lies where the median holds them: walking straight toward a camera
-#: (the rendered CMU jog and walks, 0.36-0.50 of the box) or balancing in place (the
-#: Pose2Sim trial, 0.27), not crossing its view (the Sports2D walker, 0.00)
+#: (the rendered CMU students, 0.21-0.50 of the box, whose median silhouettes reach IoU
+#: 0.41-0.49 with the truth against 0.78-0.84 with the clean plate) or balancing in place (the
+#: Pose2Sim trial, 0.11-0.75 by camera), not crossing its view (the Sports2D walker and the
+#: rendered students crossing, 0.00: docs/experiments.md, "Walking toward the camera")
 HELD_SHARE_WARNING = 0.2
 
 
