@@ -275,7 +275,9 @@ def synthesize(
     skel = Skeleton.from_bvh(source)
     num_ref = motion.shape[0]
     num_video = int((num_ref - 1) * cfg.fps / source.frame_rate) + 1
-    _check_against(cfg, skel, num_video, student if student is not None else reference)
+    kept = num_video if frames is None else max(1, min(frames, num_video))
+    drawn = kept if images else 0  # the frames whose images are rendered
+    _check_against(cfg, skel, drawn, student if student is not None else reference)
 
     # C: smooth non-linear monotone warp from video frames to source frames
     u = torch.linspace(0, 1, num_video, dtype=torch.float64)
@@ -337,7 +339,6 @@ def synthesize(
     joints2d = joints2d.transpose(0, 1)  # (C, T', J, 2)
     noisy = joints2d + cfg.noise_px * torch.randn(joints2d.shape, generator=g, dtype=torch.float64)
 
-    kept = num_video if frames is None else max(1, min(frames, num_video))
     first = slice(0, kept)
     arrays = {
         "C_true": (c_true if student is None else torch.full_like(c_true, -1))[first].numpy(),
@@ -418,7 +419,8 @@ def _text(values: list[float]) -> str:
 
 
 def _check_against(cfg: SynthConfig, skel: Skeleton, num_video: int, source) -> None:
-    """Settings the source motion must satisfy: articulated joints exist; images fit."""
+    """Settings the source motion must satisfy: articulated joints exist; the images of
+    ``num_video`` frames fit."""
     for name in cfg.articulation:
         if name not in skel.names:
             close = difflib.get_close_matches(name, skel.names, n=1)

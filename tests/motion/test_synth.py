@@ -8,7 +8,7 @@ import torch
 
 from motion.__main__ import main
 from motion.cameras import CameraRig
-from motion.synth import SynthConfig, load_sequence, save_sequence, synthesize
+from motion.synth import SynthConfig, SynthConfigError, load_sequence, save_sequence, synthesize
 from tests.conftest import SHARED_DATA, requires_shared_data
 from tests.motion.test_bvh import BUNDLED
 
@@ -169,3 +169,15 @@ def test_the_first_frames_alone_are_the_whole_videos_first_frames():
         if key in bare.arrays:
             assert np.array_equal(bare.arrays[key], array), key
     assert cut.meta["num_video_frames"] == 5 and cut.meta["shapes"]["frames"][1] == 5
+
+
+def test_only_the_frames_drawn_count_against_the_image_memory_bound():
+    """1,000 fps at 4096 x 4096 px would take some 1,000 GiB of images: refused whole, while
+    its poses alone (``images=False``) cost nothing to draw."""
+    cfg = SynthConfig(fps=1000, size=[4096, 4096])
+    with pytest.raises(SynthConfigError, match=r"x 2850 frames x size=4096x4096"):
+        synthesize(BUNDLED, cfg)
+    with pytest.raises(SynthConfigError, match=r"x 300 frames x size=4096x4096"):
+        synthesize(BUNDLED, cfg, frames=300)
+    bare = synthesize(BUNDLED, cfg, images=False)
+    assert bare.arrays["joints3d"].shape[0] == 2850 and "frames" not in bare.arrays
