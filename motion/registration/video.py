@@ -540,15 +540,20 @@ def _check_backgrounds(
         raise VideoSettingsError(
             f"backgrounds must name one picture per video ({len(paths)}); got {len(names)}"
         )
+    # a plate the user did not name says where it came from and how to leave it out
+    found = " (found beside the video by its name; video.find_backgrounds=false ignores it)"
+    origin = found if note else ""
     plates = []
     for name, path, pr in zip(names, paths, probes, strict=True):
         image = cv2.imread(name, cv2.IMREAD_COLOR) if Path(name).is_file() else None
         if image is None:
-            raise VideoError(f"{name}: not an image file OpenCV can read (background of {path})")
+            raise VideoError(
+                f"{name}: not an image file OpenCV can read (background of {path}){origin}"
+            )
         if image.shape[:2] != (pr.height, pr.width):
             raise VideoError(
                 f"{name}: the background is {image.shape[1]} x {image.shape[0]} px but "
-                f"{path.name}'s frames are {pr.width} x {pr.height}"
+                f"{path.name}'s frames are {pr.width} x {pr.height}{origin}"
             )
         plates.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
     return plates, note

@@ -186,6 +186,18 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
     )
     off = VideoSettings(width=None, find_backgrounds=False)
     assert len(features_from_videos(tmp_path / "still.avi", None, off).warnings) == 1
+    # one of the wrong size says it was found, and how to leave it out
+    cv2.imwrite(str(tmp_path / "still_background.png"), _background(80, 60))
+    _raises(
+        VideoError,
+        r"still_background\.png: the background is 80 x 60 px but still\.avi's frames are "
+        r"160 x 120 \(found beside the video by its name; video\.find_backgrounds=false "
+        r"ignores it\)",
+        [tmp_path / "still.avi"],
+        None,
+        VideoSettings(),
+    )
+    (tmp_path / "still_background.png").unlink()
     two = VideoSettings(backgrounds=[str(plate), str(plate)])
     _raises(
         VideoSettingsError,
