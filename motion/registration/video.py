@@ -623,10 +623,11 @@ def _held_warning(path: Path, share: float) -> str:
         f"{path.name}: the person stays over the same pixels in most of the frames the "
         f"background was learnt from ({100 * share:.0f} % of their box, on average, lies "
         "where the median of those frames is the person: walking toward or away from the "
-        "camera, or in place), so background subtraction loses them there and the "
-        "silhouettes miss parts of the body wherever the person detector's mask does not "
-        "stand in; a picture of the empty scene, given with --background or saved beside "
-        f"the video as {path.stem}{BACKGROUND_SUFFIX}, gives clean ones"
+        "camera, or in place), so background subtraction loses them there: wherever the "
+        "person detector's mask does not stand in, the silhouettes miss parts of the body, "
+        "and the depth, the path and the verdicts read from them are unreliable; a picture "
+        "of the empty scene, given with --background or saved beside the video as "
+        f"{path.stem}{BACKGROUND_SUFFIX}, gives clean ones"
     )
 
 
