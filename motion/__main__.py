@@ -43,7 +43,7 @@ from motion.registration.cli import (
     register_command,
 )
 from motion.settings import describe
-from motion.synth import SynthConfig, save_sequence, sequence_files, synthesize
+from motion.synth import CALIBRATION_FILE, SynthConfig, save_sequence, sequence_files, synthesize
 
 __all__ = ["CONSOLE_SCRIPT", "info", "main", "parse_overrides"]
 
@@ -174,6 +174,13 @@ def _command(args: argparse.Namespace) -> int:
         f"wrote {seq.meta['num_video_frames']} frames from {len(seq.meta['cameras'])} "
         f"camera(s): {', '.join(str(f) for f in files)}"
     )
+    if cfg.videos:
+        videos = " ".join(f"--video {out / f'{name}.avi'}" for name in seq.meta["cameras"])
+        print(
+            f"register it: python -m motion register --reference {args.reference} {videos} "
+            f"--calibration {out / CALIBRATION_FILE} --out {out / 'registration'} "
+            "(the pictures of the empty scene beside the videos are found by their names)"
+        )
     return 0
 
 

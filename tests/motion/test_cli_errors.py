@@ -266,6 +266,9 @@ def test_synth_says_what_it_wrote(tmp_path, capsys):
     files = [out / n for n in names]
     assert capsys.readouterr().out == (
         f"wrote 15 frames from 2 camera(s): {', '.join(str(f) for f in files)}\n"
+        f"register it: python -m motion register --reference {B} --video {files[2]} --video "
+        f"{files[3]} --calibration {files[6]} --out {out / 'registration'} (the pictures of the "
+        "empty scene beside the videos are found by their names)\n"
     )
     assert all(f.is_file() for f in files)
 
