@@ -280,6 +280,11 @@ def _write_outputs(
         legs_m=leg_lengths_m(reg, reference),
         in_view=video.features.within_sides(),
     )
+    if len(video.held) == len(video.paths):  # no camera saw the whole body: say so by each reason
+        names = ", ".join(p.name for p in video.held)
+        movement = movement.read_from(
+            f"read from silhouettes that miss parts of the body (the warning on {names})"
+        )
     # a frame is trusted where its fit is good, the coordinate's bones are in view, and the
     # reference has a counterpart (not an end held at C's first or last reference frame)
     frames_trusted = (reg.fit >= TRUSTED_FIT) & ~movement.held(reg.num_frames)

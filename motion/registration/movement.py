@@ -79,6 +79,7 @@ student is a finding, not another movement.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -276,6 +277,12 @@ class MovementCheck:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def read_from(self, caveat: str) -> MovementCheck:
+        """The same verdict with ``caveat`` (what the evidence was read from, e.g.
+        silhouettes known to miss parts of the body) after each reason."""
+        reasons = [f"{reason} -- {caveat}" for reason in self.reasons]
+        return dataclasses.replace(self, reasons=reasons)
 
     def held(self, n: int) -> Tensor:
         """``(n,)`` bool: the held video frames of a registration of ``n`` frames."""

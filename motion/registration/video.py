@@ -226,6 +226,9 @@ class VideoInput:
         start, step: the first frame of the files kept and the step between kept frames
             (frame ``i`` of the features is frame ``start + i * step`` of the files).
         warnings: sentences for the user about the input (a video cut short and kept).
+        held: the videos whose background, a median of their frames, holds the person
+            (:data:`HELD_SHARE_WARNING`; each has a warning): their silhouettes miss parts
+            of the body.
     """
 
     features: VideoFeatures
@@ -236,6 +239,7 @@ class VideoInput:
     start: int = 0
     step: int = 1
     warnings: list[str] = field(default_factory=list)
+    held: list[Path] = field(default_factory=list)
 
 
 def default_camera(
@@ -719,7 +723,7 @@ def features_from_videos(
     rig = resized_rig(rig, native, scaled, (width, height))
     starts = _person_points(settings, probes, scaled)
 
-    sils, dists, frames = [], [], []
+    sils, dists, frames, held_videos = [], [], [], []
     for c, (path, video) in enumerate(zip(paths, videos, strict=True)):
         if scaled[c] != (width, height):
             notes.append(
@@ -738,6 +742,7 @@ def features_from_videos(
         share = 0.0 if held is None else held_share(person, held)
         if share >= HELD_SHARE_WARNING:
             warnings.append(_held_warning(path, share))
+            held_videos.append(path)
         video = _pad(video, height, width)
         person = _pad(person, height, width)
         sils.append(person)
@@ -758,7 +763,15 @@ def features_from_videos(
         name=", ".join(p.name for p in paths),
     )
     return VideoInput(
-        features, frames, scale, "; ".join(notes), paths, settings.start, settings.step, warnings
+        features,
+        frames,
+        scale,
+        "; ".join(notes),
+        paths,
+        settings.start,
+        settings.step,
+        warnings,
+        held_videos,
     )
 
 

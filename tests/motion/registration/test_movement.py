@@ -6,6 +6,7 @@ are."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -138,6 +139,20 @@ def test_stop_and_go_or_racing_c_does_not_match():
     slow = torch.cat([torch.zeros(1, dtype=torch.long), (torch.arange(49) % 2).cumsum(0)])
     at_rate = check_movement(slow, root[slow], root, REF_RATE, REF_RATE, 1.0)
     assert at_rate.stalled_fraction is None and at_rate.motions_match
+
+
+def test_a_verdict_read_from_doubtful_evidence_says_so_by_each_reason():
+    root = _walking_reference(speed=0.0)
+    steps = torch.full((49,), 5)
+    steps[1::3] = 0
+    c = torch.cat([torch.zeros(1, dtype=torch.long), steps.cumsum(0)])
+    still = _check(c, root[c], root)
+    caveat = "read from silhouettes that miss parts of the body"
+    hedged = still.read_from(caveat)
+    assert hedged.reasons == [f"{r} -- {caveat}" for r in still.reasons] and hedged.reasons
+    assert dataclasses.replace(hedged, reasons=still.reasons) == still
+    agreed = _check(torch.arange(50) * 5, root[torch.arange(50) * 5], root)
+    assert agreed.motions_match and agreed.read_from(caveat) == agreed
 
 
 def test_held_ends_count_the_repeats_of_the_first_and_last_values():

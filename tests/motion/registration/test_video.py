@@ -163,13 +163,14 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
     assert _iou(sil, masks).mean() < 0.5
     # ... and says so, naming the file and the remedy
     (warning,) = median.warnings
+    assert median.held == [tmp_path / "still.avi"]
     assert warning.startswith("still.avi: the person stays over the same pixels")
     assert "--background or saved beside the video as still_background.png" in warning
     plate = tmp_path / "empty.png"
     cv2.imwrite(str(plate), cv2.cvtColor(_background(), cv2.COLOR_RGB2BGR))
     st = VideoSettings(width=80, backgrounds=[str(plate)])
     clean = features_from_videos(tmp_path / "still.avi", None, st)
-    assert clean.warnings == []
+    assert clean.warnings == [] and clean.held == []
     sil = clean.features.observation.silhouette[0, :, 0].numpy() > 0.5
     want = np.stack(
         [cv2.resize(m.astype(np.uint8), (80, 60), interpolation=cv2.INTER_AREA) for m in masks]
@@ -222,7 +223,8 @@ def test_a_clean_plate_finds_a_person_who_stays_in_place(tmp_path):
 
 def test_a_person_crossing_the_view_gets_no_warning_about_the_background(one):
     path, _ = one
-    assert features_from_videos(path, None, VideoSettings(width=None)).warnings == []
+    crossing = features_from_videos(path, None, VideoSettings(width=None))
+    assert crossing.warnings == [] and crossing.held == []
     kept = VideoSettings(width=None, background_frames=0)
     assert features_from_videos(path, None, kept).warnings == []
 
