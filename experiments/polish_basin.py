@@ -104,7 +104,7 @@ def run(cfg: PolishBasinConfig):
     )
     # the truth is the whole video's (a DP over all its frames); only the frames used are drawn
     whole = synthesize(cfg.reference, synth, student=cfg.student, images=False)
-    seq = synthesize(cfg.reference, synth, student=cfg.student, frames=cfg.frames or None)
+    seq = synthesize(cfg.reference, synth, student=cfg.student, frames=cfg.frames)
     reference, student = Reference.from_bvh(cfg.reference), Reference.from_bvh(cfg.student)
     if student.skeleton.names != reference.skeleton.names:
         raise ConfigError(

@@ -174,8 +174,8 @@ def _command(args: argparse.Namespace) -> int:
         f"wrote {seq.meta['num_video_frames']} frames from {len(seq.meta['cameras'])} "
         f"camera(s): {', '.join(str(f) for f in files)}"
     )
-    if cfg.videos:
-        videos = " ".join(f"--video {out / f'{name}.avi'}" for name in seq.meta["cameras"])
+    if cfg.videos:  # the files save_sequence wrote: its videos and their calibration
+        videos = " ".join(f"--video {f}" for f in files if f.suffix == ".avi")
         print(
             f"register it: python -m motion register --reference {args.reference} {videos} "
             f"--calibration {out / CALIBRATION_FILE} --out {out / 'registration'} "

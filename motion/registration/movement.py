@@ -79,9 +79,8 @@ student is a finding, not another movement.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -282,7 +281,7 @@ class MovementCheck:
         """The same verdict with ``caveat`` (what the evidence was read from, e.g.
         silhouettes known to miss parts of the body) after each reason."""
         reasons = [f"{reason} -- {caveat}" for reason in self.reasons]
-        return dataclasses.replace(self, reasons=reasons)
+        return replace(self, reasons=reasons)
 
     def held(self, n: int) -> Tensor:
         """``(n,)`` bool: the held video frames of a registration of ``n`` frames."""

@@ -528,10 +528,11 @@ def _check_backgrounds(
     beside the videos: :func:`plates_beside`) as ``(H, W, 3)`` uint8 RGB at each video's size
     (``None`` per camera when there are none), and a note naming the plates found (``""``
     when given or none)."""
-    names, note = settings.backgrounds, ""
+    names, note, found = settings.backgrounds, "", False
     if names is None and settings.find_backgrounds:
         beside = plates_beside(paths)
-        if beside is not None:
+        found = beside is not None
+        if found:
             names = [str(p) for p in beside]
             note = (
                 "background: the picture of the empty scene beside each video ("
@@ -545,8 +546,11 @@ def _check_backgrounds(
             f"backgrounds must name one picture per video ({len(paths)}); got {len(names)}"
         )
     # a plate the user did not name says where it came from and how to leave it out
-    found = " (found beside the video by its name; video.find_backgrounds=false ignores it)"
-    origin = found if note else ""
+    origin = (
+        " (found beside the video by its name; video.find_backgrounds=false ignores it)"
+        if found
+        else ""
+    )
     plates = []
     for name, path, pr in zip(names, paths, probes, strict=True):
         image = cv2.imread(name, cv2.IMREAD_COLOR) if Path(name).is_file() else None
