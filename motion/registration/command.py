@@ -299,6 +299,7 @@ def _write_outputs(
         movement=movement,
         findings=cfg.findings,
         cameras=rig.num_cameras,
+        partial_silhouettes=[p.name for p in video.held],
     )
     if detection is not None:
         summary = dataclasses.replace(summary, detection=detection.summary())
@@ -499,6 +500,11 @@ def _size_words(s: RegistrationSummary) -> str:
     return words
 
 
+def _fit_caveat(s: RegistrationSummary) -> str:
+    """What the fit was measured against, where no camera saw the whole body."""
+    return "" if s.whole_body_seen else ", against silhouettes that miss parts of the body"
+
+
 def summary_lines(outcome: RegisterOutcome) -> list[str]:
     """The one-screen summary printed at the end."""
     s = outcome.summary
@@ -509,7 +515,7 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
         f"  starts at {s.reference_start_s:.2f} s of the reference (video {s.video_start_s:.2f}"
         f" s, frame {s.video_frames[0]}); speed ratio {s.speed_ratio:.2f} (reference seconds "
         "per video second)",
-        f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}; {_size_words(s)}",
+        f"  fit (silhouette IoU) {s.silhouette_iou_mean:.2f}{_fit_caveat(s)}; {_size_words(s)}",
     ]
     reasons = s.movement.get("reasons", [])  # first among the warnings
     if not s.motions_match:
@@ -525,7 +531,10 @@ def summary_lines(outcome: RegisterOutcome) -> list[str]:
         lines.append("  largest joint differences:")
         lines += [f"    {d['text']}" for d in stated[:3]]
     withheld = [d for d in s.largest_differences if not d["stated"]] if s.motions_match else []
-    lines += [f"  not stated: {d['text']} ({d['why']})" for d in withheld]
+    if withheld and not s.whole_body_seen:  # one reason for all: say it once
+        lines.append(f"  no joint difference is stated: {withheld[0]['why']}")
+    else:
+        lines += [f"  not stated: {d['text']} ({d['why']})" for d in withheld]
     out = next(iter(outcome.files.values())).parent
     lines.append(
         f"  wrote {len(outcome.files)} files to {out}: report {outcome.files['report.html']}"

@@ -1036,6 +1036,10 @@ class RegistrationSummary:
             (:meth:`motion.perception.run.DetectionRun.summary`: detector, frames per
             second, frames detected per camera, whether an earlier run's files were
             reused); empty when none ran.
+        partial_silhouettes: the videos whose silhouettes miss parts of the body (their
+            background, a median of their frames, holds the person: each has a warning).
+            When it names every camera, :attr:`fit` was measured against partial
+            silhouettes and no difference is stated (:attr:`whole_body_seen` false).
     """
 
     reference: str
@@ -1062,6 +1066,8 @@ class RegistrationSummary:
     G_measured: bool = True
     proportions: dict[str, float] = field(default_factory=dict)
     detection: dict = field(default_factory=dict)
+    partial_silhouettes: list[str] = field(default_factory=list)
+    whole_body_seen: bool = True
 
     def to_json(self, indent: int | None = 2) -> str:
         """The summary as strict JSON text: NaN and infinities as ``null``; paths, tensors,
@@ -1122,24 +1128,24 @@ def stated_findings(
     matches: bool = True,
     count: int = 3,
     table: MethodError | None = None,
+    withhold: str = "",
 ) -> list[dict]:
     """The ``count`` :func:`largest_differences` of the trusted angles
     (:func:`trusted_angles`), largest ``|mean difference|`` first, each as
     :meth:`JointDifference.to_dict` with its method error (``rules``, ``cameras``,
     ``table``: :meth:`FindingSettings.method_error`) and ``stated`` and ``why``
     (:meth:`FindingSettings.why_not`; every one withheld when the movements do not match,
-    ``matches`` false)."""
+    ``matches`` false, or with ``withhold`` as its ``why`` when that is given)."""
     rules = rules or FindingSettings()
     out = []
     found = largest_differences(trusted_angles(angles, trusted), count)
     for d in sorted(found, key=lambda d: -abs(d.mean_difference_deg)):
         e = rules.method_error(d.coordinate, cameras, table)
         d = dataclasses.replace(d, method_error_deg=e)
-        why = (
-            rules.why_not(d, frame_rate, cameras, table)
-            if matches
-            else "the student does not perform the reference's movement"
-        )
+        if not matches:
+            why = "the student does not perform the reference's movement"
+        else:
+            why = withhold or rules.why_not(d, frame_rate, cameras, table)
         out.append({**d.to_dict(), "stated": not why, "why": why})
     return out
 
@@ -1155,6 +1161,7 @@ def summarise(
     movement: MovementCheck | None = None,
     findings: FindingSettings | None = None,
     cameras: int = 1,
+    partial_silhouettes: list[str] | tuple[str, ...] = (),
 ) -> RegistrationSummary:
     """The run in one record (:class:`RegistrationSummary`).
 
@@ -1174,8 +1181,19 @@ def summarise(
         findings: when a largest difference is stated (:class:`FindingSettings`); every
             difference is withheld when the movements do not match.
         cameras: how many cameras saw the student (the method's error depends on it).
+        partial_silhouettes: the names of the videos whose silhouettes miss parts of the
+            body (:attr:`motion.registration.video.VideoInput.held`); when there are
+            ``cameras`` of them, no camera saw the whole body: the fit says little and
+            every difference is withheld, saying so.
     """
     matches = movement is None or movement.motions_match
+    whole = len(partial_silhouettes) < cameras
+    withhold = (
+        ""
+        if whole
+        else "no camera's silhouettes show the whole body (the warning on "
+        f"{', '.join(partial_silhouettes)}), so the posture is read from parts of it"
+    )
     if trusted is None:
         trusted = reg.fit >= TRUSTED_FIT
     frame_rate = _check_rate(frame_rate)
@@ -1208,7 +1226,7 @@ def summarise(
             k: v for k, v in per_joint_mean_abs_deg(angles).items() if math.isfinite(v)
         },
         largest_differences=stated_findings(
-            angles, trusted, frame_rate, findings, cameras, matches, count
+            angles, trusted, frame_rate, findings, cameras, matches, count, withhold=withhold
         ),
         timings={k: float(v) for k, v in reg.timings.items()},
         notes={k: str(v) for k, v in reg.notes.items()},
@@ -1220,4 +1238,6 @@ def summarise(
             *reg.warnings,
         ],
         movement=movement.to_dict() if movement is not None else {},
+        partial_silhouettes=list(partial_silhouettes),
+        whole_body_seen=whole,
     )

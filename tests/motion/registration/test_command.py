@@ -251,6 +251,44 @@ def test_a_report_without_a_trusted_frame_says_so(register_run, tmp_path, monkey
     assert json.loads((out / "summary.json").read_text())["largest_differences"] == []
 
 
+def test_silhouettes_missing_the_body_hedge_the_fit_and_withhold_the_findings(
+    register_run, tmp_path, monkeypatch, capsys
+):
+    """Where the only camera's silhouettes miss parts of the body (its median background holds
+    the person: forced here on the clean run's input, warning and all, so that only the
+    flag differs), the printed fit and the report's card say what the fit was measured
+    against, and every difference is withheld for that reason, printed once (the clean run
+    gives each its own; test_export checks that a stated one is withheld)."""
+    features_from_videos = command.features_from_videos
+    warning = "cam.avi: the person stays over the same pixels ..."
+
+    def held(paths, rig, settings):
+        video = features_from_videos(paths, rig, settings)
+        return dataclasses.replace(
+            video, held=list(video.paths), warnings=[*video.warnings, warning]
+        )
+
+    monkeypatch.setattr(command, "features_from_videos", held)
+    capsys.readouterr()
+    assert main(register_argv(register_run.student, tmp_path / "out")) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text(encoding="utf-8"))
+    name = register_run.student.video.name
+    assert summary["whole_body_seen"] is False and summary["partial_silhouettes"] == [name]
+    assert warning in summary["warnings"] and summary["motions_match"]
+    findings = summary["largest_differences"]
+    assert findings and all(not d["stated"] for d in findings)
+    assert all(d["why"].startswith("no camera's silhouettes show the whole body") for d in findings)
+    assert "against silhouettes that miss parts of the body" in printed
+    assert printed.count("no joint difference is stated: no camera's silhouettes") == 1
+    assert "not stated:" not in printed and "largest joint differences" not in printed
+    text = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")
+    assert "(uncertain)</div>" in text and "Withheld: no camera's silhouettes" in text
+    for d in findings:
+        assert str(escape(d["text"])) in text  # shown for inspection, not as findings
+    assert '<ol class="findings">' not in text
+
+
 def test_every_time_is_on_the_source_videos_clock(register_run, tmp_path, capsys):
     """video.start=4, video.step=2 at 12 fps: frame t' is source frame 4 + 2 t' at
     (4 + 2 t') / 12 s in summary.json, the CSV, the .mot, the findings, the printed summary

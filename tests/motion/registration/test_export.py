@@ -804,3 +804,44 @@ def test_summary_withholds_the_findings_the_inference_cannot_tell_from_zero(refe
             assert default["method_error_deg"] == expected
         assert top["uncertainty_deg"] == pytest.approx(math.hypot(spread, spread))
         assert ("holds 0" in top["why"]) is not stated
+
+
+def test_no_difference_is_stated_where_no_camera_saw_the_whole_body(reference):
+    """The knee flexes 12 degrees more and is stated -- unless every camera's silhouettes miss
+    parts of the body (their median background holds the person): then each difference is
+    kept with that reason, and the summary says the fit was measured against partial
+    silhouettes. One such camera of two leaves the findings as they were; another movement's
+    reason comes first."""
+    t = 40
+    reg = make_registration(reference, num_frames=t)
+    reg.C = 5 + 3 * torch.arange(t)
+    reg.rotations = reference.rotations[reg.C] @ flex_articulation(
+        reference, reg.C, "LeftLeg", -12.0
+    )
+    reg.fit = torch.ones(t)
+    angles = joint_angles(reg, reference, 30.0)
+    rules = FindingSettings(method_error_deg=0.0)
+
+    def summary(cameras, partial, movement=None):
+        return summarise(
+            reg, reference, angles, 30.0, {}, findings=rules, cameras=cameras,
+            partial_silhouettes=partial, movement=movement,
+        )  # fmt: skip
+
+    clear = summary(2, ["cam1.avi"])
+    assert clear.whole_body_seen and clear.partial_silhouettes == ["cam1.avi"]
+    assert clear.largest_differences[0]["stated"] is True
+    assert clear.largest_differences == summary(2, []).largest_differences
+    held = summary(2, ["cam1.avi", "cam2.avi"])
+    assert not held.whole_body_seen
+    assert held.largest_differences[0]["coordinate"] == "knee_angle_l"
+    for d in held.largest_differences:
+        assert d["stated"] is False
+        assert d["why"].startswith("no camera's silhouettes show the whole body")
+        assert "cam1.avi, cam2.avi" in d["why"]
+    record = json.loads(held.to_json())
+    assert record["whole_body_seen"] is False
+    assert record["partial_silhouettes"] == ["cam1.avi", "cam2.avi"]
+    other = MovementCheck(False, ["the reference travels 2.0 m ... the student 0.1 m"])
+    for d in summary(1, ["cam1.avi"], other).largest_differences:
+        assert d["why"] == "the student does not perform the reference's movement"
