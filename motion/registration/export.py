@@ -44,6 +44,7 @@ from motion.angles import (
     coordinate_segments,
     describe_coordinate,
 )
+from motion.body.spec import joint_parts
 from motion.bvh import BVH, FRAME_TIME_RANGE, read_bvh, write_bvh
 from motion.geometry import matrix_to_euler, rotation_angle
 from motion.kinematics import FKResult, end_site_positions_by_joint, forward_kinematics
@@ -323,14 +324,20 @@ def _estimated_coordinates(reference: Reference, segments: SegmentMap) -> list[b
 
 def _part_of(reference: Reference, joint: int) -> int:
     """The body part that turns with ``joint``: the part whose frame joint is ``joint`` or
-    its nearest ancestor (CMU's Spine1 moves with the torso part, framed by Spine)."""
+    its nearest ancestor (CMU's Spine1 moves with the torso part, framed by Spine); failing
+    that, the part whose chain of joints holds it (:func:`motion.body.spec.joint_parts`):
+    the root, where the pelvis is framed by a joint above it (on CMU's jumps the lower
+    back's rotation fits the pelvis's landmarks best)."""
     frames = reference.spec.frame_joints.tolist()
     j = joint
     while j >= 0:
         if j in frames:
             return frames.index(j)
         j = int(reference.skeleton.parents[j])
-    raise RegistrationError(f"{reference.name}: no body part moves joint {joint}")
+    part = int(joint_parts(reference.skeleton, reference.model)[joint])
+    if part < 0:
+        raise RegistrationError(f"{reference.name}: no body part moves joint {joint}")
+    return part
 
 
 def _angle_uncertainty(

@@ -729,6 +729,29 @@ def test_angle_uncertainty_adds_the_two_segments_part_spreads_in_quadrature(refe
         joint_angles(reg, reference, 30.0)
 
 
+def test_a_pelvis_framed_above_the_root_still_gives_the_lumbar_uncertainty(reference):
+    """On CMU's jumps (02_04, 01_01) the lower back's rotation fits the pelvis's landmarks
+    best, so the pelvis part is framed by LowerBack, not by the root: the root then turns
+    with the part whose chain holds it (the pelvis), and the lumbar angles' uncertainty is
+    the pelvis's and the torso's spreads as before -- where it raised "no body part moves
+    joint 0" after the whole registration."""
+    names = reference.skeleton.names
+    frames = reference.spec.frame_joints.clone()
+    pelvis = int((frames == names.index("Hips")).nonzero())
+    frames[pelvis] = names.index("LowerBack")
+    lifted = dataclasses.replace(
+        reference, spec=dataclasses.replace(reference.spec, frame_joints=frames)
+    )
+    reg = make_registration(lifted, num_frames=4)
+    spread = torch.arange(1.0, 1.0 + reference.spec.num_parts)[None].repeat(4, 1)
+    reg.part_spread_deg = spread
+    angles = joint_angles(reg, lifted, 30.0)
+    torso = int((frames == names.index("Spine")).nonzero())
+    back = angles.uncertainty_deg[:, angles.coordinates.index("lumbar_extension")]
+    expected = math.hypot(spread[0, pelvis], spread[0, torso])
+    torch.testing.assert_close(back, torch.full((4,), expected, dtype=F64))
+
+
 def test_a_finding_is_stated_only_with_enough_frames_and_an_interval_clear_of_zero():
     """Each rule alone withholds a finding and says why; the sentence carries the
     uncertainty when there is one."""
