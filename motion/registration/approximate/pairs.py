@@ -192,7 +192,10 @@ def _refine_from(
         rot, p, _, cost = _levenberg_marquardt(
             batch, rot0[sl], p0[sl], None, iterations, scene.settings.lm_damping
         )
-        out_c.append(cost + _heading_penalty(scene, rows_n[sl], cols_n[sl], rot))
+        cost = cost + _heading_penalty(scene, rows_n[sl], cols_n[sl], rot)
+        # a start that is not a pose (the 2-D joints' solve gives NaN where they are
+        # degenerate) is no candidate: an infinite cost, where NaN would win every argmin
+        out_c.append(cost.masked_fill(cost.isnan(), math.inf))
         out_r.append(rot)
         out_p.append(p)
     return (

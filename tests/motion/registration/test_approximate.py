@@ -303,6 +303,30 @@ def test_heading_prior_tells_front_from_back_not_the_exact_heading(reference, wa
         assert torch.allclose(paid, want, atol=0.03), (tolerance, paid)
 
 
+def test_a_keypoint_start_that_is_no_pose_is_no_candidate(reference, walk, monkeypatch):
+    """In frames where the detector finds no one (every confidence 0) the 2-D joints' pose
+    solve may give NaN. Such a start is no candidate: each pair keeps a finite pose and cost
+    from its other starts -- where a NaN start's pixels, cast to an index, made stage 1 fail
+    with "index out of range" (the CMU kick 10_03 rendered and registered against itself),
+    and its NaN cost would have won every argmin."""
+    import motion.registration.approximate.starts as starts
+
+    video = _video(walk, keypoints=True)
+    rows = torch.arange(0, 72, 12)
+    cols = torch.from_numpy(walk.arrays["C_true"])[rows][:, None]
+    settings = Stage1Settings(iterations=5, dtype=F64)
+    solve = starts.solve_pose_views
+
+    def no_pose(*args, **kwargs):
+        res = solve(*args, **kwargs)
+        return dataclasses.replace(res, R=torch.full_like(res.R, math.nan), t=res.t * math.nan)
+
+    monkeypatch.setattr(starts, "solve_pose_views", no_pose)
+    fit = fit_rigid_pairs(reference, video, rows, cols, 1.0, settings)
+    assert torch.isfinite(fit.cost).all()
+    assert torch.isfinite(fit.rotation).all() and torch.isfinite(fit.translation).all()
+
+
 # -- (b) the 2-D joint path against OpenCV ---------------------------------------------------------
 def test_keypoint_path_matches_opencv_solvepnp(reference, walk):
     """With keypoints only (silhouette and edge weights 0) and a Cauchy scale far above the
