@@ -71,6 +71,18 @@ class PolishBasinConfig(ExperimentConfig):
     smooth_deg: float = setting(
         3.0, "the polish's frame-to-frame smoothness, degrees (motion register's default: 3)", gt=0
     )
+    proportion_steps: int = setting(
+        0,
+        "steps of the polish's fit of the student's proportions to the 2-D joints (motion "
+        "register's default: 0, the reference's proportions)",
+        ge=0,
+    )
+    joints_first_steps: int = setting(
+        0,
+        "steps of a descent on the 2-D joints alone before the polish (motion register's "
+        "default: 0, none)",
+        ge=0,
+    )
     warp_seed: int = setting(0, "seed of the synthetic student's time warp", ge=0)
 
 
@@ -126,6 +138,8 @@ def run(cfg: PolishBasinConfig):
         articulation_deg=cfg.articulation_deg,
         lr=cfg.lr,
         smooth_deg=cfg.smooth_deg,
+        proportion_steps=cfg.proportion_steps,
+        joints_first_steps=cfg.joints_first_steps,
     )
     true_angles = _angles(reference, local)
     reference_angles = _angles(reference, reference.rotations[c])

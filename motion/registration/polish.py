@@ -37,12 +37,19 @@ length factor per body part (left and right sharing one), shared by every frame,
 log-normal prior about 1 (the same terms, without smoothness between frames that are not
 neighbours). The frames are then polished on the student's proportions.
 
+Before the polish, when turned on (``joints_first_steps``) and the video has 2-D joints, a
+**descent on the 2-D joints alone** (the same terms without the silhouettes, a wider prior
+and looser smoothness) moves the posture toward the joints' from further away than the
+polish reaches: the silhouettes hold a limb wherever it lies inside the outline, so started
+at the reference's posture the polish keeps most of it.
+
 Conventions: metres, radians, pixels; column vectors, right-handed world (DESIGN.md section
 3). Shapes: ``T'`` video frames, ``J`` joints, ``C`` cameras, ``P`` parts, ``N`` points.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -155,7 +162,41 @@ class PosturePolishSettings(Settings):
         "about half a pixel but measured better on the real Pose2Sim trial, whose masks are "
         "no rasteriser's (docs/decisions/002-posture-polish.md)",
     )
+    joints_first_steps: int = setting(
+        0,
+        "Adam steps of a descent on the 2-D joints alone (the silhouettes left out), before "
+        "the polish and after the proportions' fit, from the posture given: a wider search "
+        "than the polish, whose silhouettes hold a posture near where it starts (0, or no "
+        "2-D joints: none). For joints that are the skeleton's, seen by two or more cameras "
+        "(docs/experiments.md, 'Where the articulation's error on another performer comes "
+        "from'); 300 is enough",
+        ge=0,
+        le=100000,
+    )
+    joints_first_lr: float = setting(
+        0.05, "the joints-first descent's Adam step size (radians, metres, per step)", gt=0, le=1
+    )
+    joints_first_articulation_deg: float = setting(
+        30.0,
+        "degrees, the joints-first descent's articulation prior (as articulation_deg)",
+        gt=0,
+        le=180,
+    )
+    joints_first_smooth_deg: float = setting(
+        30.0, "degrees, the joints-first descent's frame-to-frame smoothness (as smooth_deg)", gt=0
+    )
     seed: int = setting(0, "seed of the silhouette pixels' sampling", ge=0)
+
+    def joints_first(self) -> PosturePolishSettings:
+        """The settings of the joints-first descent: these, on the 2-D joints alone."""
+        return dataclasses.replace(
+            self,
+            silhouette=0.0,
+            steps=self.joints_first_steps,
+            lr=self.joints_first_lr,
+            articulation_deg=self.joints_first_articulation_deg,
+            smooth_deg=self.joints_first_smooth_deg,
+        )
 
 
 @dataclass
@@ -504,7 +545,7 @@ def polish_posture(
         )
     proportions = Proportions.of(reference)
     start = PolishResult(rotations.double(), translation.double(), 0.0, 0.0, proportions)
-    if s.steps == 0 and s.proportion_steps == 0:
+    if s.steps == 0 and s.proportion_steps == 0 and s.joints_first_steps == 0:
         return start
     driven = sorted(set(reference.spec.frame_joints.tolist()) - {0})
     columns, keypoint_joints = _keypoint_columns(reference, video)
@@ -541,34 +582,47 @@ def polish_posture(
         )
         proportions = Proportions.of(reference, fitted)
     out_rot, out_trans = start.rotations.clone(), start.translation.clone()
-    before = after = 0.0
-    anchor = None
-    firsts = range(0, t, s.frames_per_chunk) if s.steps else range(0)
     wrap = progress or (lambda items, description, total: items)
-    for first in wrap(firsts, "polish (T, A)", len(firsts)):
-        chunk = slice(first, min(t, first + s.frames_per_chunk))
-        task = problem(chunk, out_rot[chunk], out_trans[chunk], proportions)
-        n = chunk.stop - chunk.start
-        joints = torch.zeros(
-            n, j, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True
-        )
-        root = torch.zeros(n, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True)
-        shift = torch.zeros(n, 3, dtype=torch.float64, device=out_rot.device, requires_grad=True)
 
-        def loss(task=task, joints=joints, root=root, shift=shift, anchor=anchor):
-            return sum(_losses(task, joints, root, shift, None, anchor, True, s).values())
+    def descend_chunks(settings: PosturePolishSettings, label: str) -> tuple[float, float]:
+        """``settings``' descent over the chunks of frames, in place on ``out_rot`` and
+        ``out_trans``: the loss before and after, summed over the chunks."""
+        before = after = 0.0
+        anchor = None
+        firsts = range(0, t, settings.frames_per_chunk) if settings.steps else range(0)
+        for first in wrap(firsts, label, len(firsts)):
+            chunk = slice(first, min(t, first + settings.frames_per_chunk))
+            task = problem(chunk, out_rot[chunk], out_trans[chunk], proportions)
+            n = chunk.stop - chunk.start
+            dev = out_rot.device
+            joints = torch.zeros(n, j, 3, dtype=torch.float64, device=dev, requires_grad=True)
+            root = torch.zeros(n, 3, dtype=torch.float64, device=dev, requires_grad=True)
+            shift = torch.zeros(n, 3, dtype=torch.float64, device=dev, requires_grad=True)
 
-        first_loss, best_loss, best = _descend(loss, [joints, root, shift], s.steps, s.lr)
-        if best is None:  # nothing finite to descend: the chunk keeps its start
-            anchor = None
-            continue
-        best_joints, best_root, best_shift = best
-        with torch.no_grad():
-            out_rot[chunk] = task.posture.rotations(best_joints, best_root)
-            out_trans[chunk] = task.translation + best_shift
-            anchor = (best_joints[-1:], best_root[-1:], best_shift[-1:])
-        before += first_loss
-        after += best_loss
+            def loss(task=task, joints=joints, root=root, shift=shift, anchor=anchor):
+                terms = _losses(task, joints, root, shift, None, anchor, True, settings)
+                return sum(terms.values())
+
+            first_loss, best_loss, best = _descend(
+                loss, [joints, root, shift], settings.steps, settings.lr
+            )
+            if best is None:  # nothing finite to descend: the chunk keeps its start
+                anchor = None
+                continue
+            best_joints, best_root, best_shift = best
+            with torch.no_grad():
+                out_rot[chunk] = task.posture.rotations(best_joints, best_root)
+                out_trans[chunk] = task.translation + best_shift
+                anchor = (best_joints[-1:], best_root[-1:], best_shift[-1:])
+            before += first_loss
+            after += best_loss
+        return before, after
+
+    # the silhouettes hold a posture near its start (a limb inside the outline stays where it
+    # fits); the 2-D joints alone pull it toward theirs from further away
+    if s.joints_first_steps and columns is not None:
+        descend_chunks(s.joints_first(), "polish on the 2-D joints (T, A)")
+    before, after = descend_chunks(s, "polish (T, A)")
     return PolishResult(out_rot, out_trans, before, after, proportions)
 
 
