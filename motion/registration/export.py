@@ -1047,6 +1047,8 @@ class RegistrationSummary:
             background, a median of their frames, holds the person: each has a warning).
             When it names every camera, :attr:`fit` was measured against partial
             silhouettes and no difference is stated (:attr:`whole_body_seen` false).
+        whole_body_seen: whether some camera's silhouettes show the whole body (false when
+            :attr:`partial_silhouettes` names every camera).
     """
 
     reference: str
