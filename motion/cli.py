@@ -59,6 +59,26 @@ def one_line(err: BaseException) -> str:
     return " ".join(text.split())
 
 
+def _is_setting(item: str) -> bool:
+    return "=" in item and not item.startswith("-")
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, except that ``key=value`` settings may also come after
+    an option that follows the first of them (``--video a.avi seed=1 --out o refine.x=2``):
+    argparse takes one run of a ``nargs="*"`` positional and leaves later runs unrecognised.
+    Those join the command's ``overrides`` in their order on the command line (every later
+    run comes after the first); anything else unrecognised is the usual usage error."""
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        if not (
+            all(map(_is_setting, extra)) and isinstance(getattr(args, "overrides", None), list)
+        ):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.overrides = [*args.overrides, *extra]
+    return args
+
+
 def run(
     parser: argparse.ArgumentParser,
     argv: list[str] | None,
@@ -69,7 +89,7 @@ def run(
     None), 0 after ``--help``, :data:`EXIT_BAD_INPUT` after printing one line for a usage
     error or one of ``errors``, 130 on Ctrl-C."""
     try:
-        args = parser.parse_args(argv)
+        args = _parse(parser, argv)
     except UsageError as err:
         print(f"error: {one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -5,6 +5,7 @@ lists synth's settings; ``info`` explains parts and roles; ``synth`` says what i
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import subprocess
 import sys
@@ -271,6 +272,23 @@ def test_synth_says_what_it_wrote(tmp_path, capsys):
         "empty scene beside the videos are found by their names)\n"
     )
     assert all(f.is_file() for f in files)
+
+
+def test_settings_may_come_on_either_side_of_an_option(tmp_path, capsys):
+    """key=value settings before and after other options all count, where argparse would
+    take the first run and call the rest unrecognised (one given twice is still refused); an
+    unrecognised argument that is no setting is still one usage line."""
+    out = tmp_path / "seq"
+    argv = ["synth", "fps=5", "--reference", B, "size=16x12", "--out", str(out), "focal_px=30"]
+    assert main(argv) == 0
+    assert capsys.readouterr().out.startswith("wrote 15 frames from 1 camera(s)")
+    meta = json.loads((out / "sequence.json").read_text())
+    assert meta["video_rate_hz"] == 5
+    assert meta["config"]["size"] == [16, 12] and meta["config"]["focal_px"] == 30
+    assert main([*argv, "fps=7"]) == 2
+    assert "fps is given twice" in capsys.readouterr().err
+    assert main(["info", B, "fps=5"]) == 2  # info takes no settings
+    assert "unrecognized arguments: fps=5" in capsys.readouterr().err
 
 
 def test_synth_config_checks_itself():
