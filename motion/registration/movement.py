@@ -246,7 +246,8 @@ class MovementCheck:
         held_start, held_end: video frames at the start (end) that hold C's first (last)
             reference frame before (after) the one that matches it, left out of the checks
             (0 when the held frames exceed ``max_held``; then they count as stalls).
-        warnings: sentences for the user about the held frames (empty when none).
+        warnings: sentences for the user about the held frames, and about a video too short
+            for the pace, path and gait checks when no check failed (empty when none).
         student_straightness, reference_straightness: each root's net displacement over
             its path length over the compared stretch (:func:`path_straightness`; ``nan``:
             not measured, the stretch shorter than ``min_compared_s`` or than 3 windows).
@@ -615,6 +616,14 @@ def check_movement(
             c, student_path, reference_path, (reference_rate, video_rate), legs_m, s, seen
         )
         reasons += [reason] if reason else []
+    short = []
+    if not long_enough and not reasons:  # a match by default: say what was not checked
+        short.append(
+            f"the video lasts {n / video_rate:.2f} s where it matches the reference: too short "
+            f"for the pace, the path and the gait checks, which need {s.min_compared_s:g} s "
+            "(about one stride) between its ends, so whether the student performs the "
+            "reference's movement is not known"
+        )
     return MovementCheck(
         motions_match=not reasons,
         reasons=reasons,
@@ -625,7 +634,7 @@ def check_movement(
         speed_ratio=speed,
         held_start=start,
         held_end=end,
-        warnings=held,
+        warnings=[*held, *short],
         student_froude=froudes[1],
         reference_froude=froudes[0],
         student_froude_peak=peak_froudes[1],

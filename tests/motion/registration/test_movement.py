@@ -71,6 +71,23 @@ def test_another_walker_at_another_tempo_matches():
     assert result.stalled_fraction == 0.0 and result.fast_fraction == 0.0
 
 
+def test_a_video_too_short_to_check_says_the_verdict_is_not_known():
+    """Eight frames (0.32 s) of another walker: no check can be read (a stride takes about a
+    second), so the match is a default and a warning says so; a second and a half of the
+    same walker is checked and gets no such warning; a failed check needs none."""
+    root = _walking_reference()
+    short = _check(_warped_c(8), root[_warped_c(8)], root)
+    assert short.motions_match and short.reasons == []
+    (warning,) = short.warnings
+    assert warning.startswith("the video lasts 0.32 s where it matches the reference")
+    assert "need 1 s (about one stride)" in warning
+    assert warning.endswith("whether the student performs the reference's movement is not known")
+    c = _warped_c(40)
+    assert _check(c, root[c], root).warnings == []
+    far = _check(_warped_c(8), 8.0 * root[_warped_c(8)], root, travelling_m=0.01)
+    assert not far.motions_match and far.warnings == []
+
+
 def test_the_verdict_does_not_depend_on_the_world_frame():
     root = _walking_reference()
     c = _warped_c()
