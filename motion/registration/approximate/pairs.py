@@ -194,10 +194,14 @@ def _refine_from(
         )
         cost = cost + _heading_penalty(scene, rows_n[sl], cols_n[sl], rot)
         # a start that is not a pose (the 2-D joints' solve gives NaN where they are
-        # degenerate) is no candidate: an infinite cost, where NaN would win every argmin
-        out_c.append(cost.masked_fill(cost.isnan(), math.inf))
-        out_r.append(rot)
-        out_p.append(p)
+        # degenerate) is no candidate: an infinite cost, where NaN would win every argmin,
+        # and a finite pose (the identity at the origin), where NaN would poison the
+        # smoothness tables between neighbouring frames' candidates
+        bad = cost.isnan() | ~torch.isfinite(rot).flatten(1).all(1) | ~torch.isfinite(p).all(1)
+        eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
+        out_c.append(cost.masked_fill(bad, math.inf))
+        out_r.append(torch.where(bad[:, None, None], eye, rot))
+        out_p.append(p.masked_fill(bad[:, None], 0.0))
     return (
         torch.cat(out_c).reshape(r, w, k),
         torch.cat(out_r).reshape(r, w, k, 3, 3),

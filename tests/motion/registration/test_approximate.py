@@ -325,6 +325,14 @@ def test_a_keypoint_start_that_is_no_pose_is_no_candidate(reference, walk, monke
     fit = fit_rigid_pairs(reference, video, rows, cols, 1.0, settings)
     assert torch.isfinite(fit.cost).all()
     assert torch.isfinite(fit.rotation).all() and torch.isfinite(fit.translation).all()
+    # the whole stage: the final transforms' smoothness between neighbouring frames'
+    # candidates read every candidate's pose ("log_table must be finite": a run against a
+    # walk without calibration, and three cameras at 640 x 480)
+    result = approximate_registration(
+        reference, video, 1.0, Stage1Settings(), torch.Generator().manual_seed(0)
+    )
+    assert torch.isfinite(result.rotation).all() and torch.isfinite(result.translation).all()
+    assert bool((result.C[1:] >= result.C[:-1]).all())
 
 
 # -- (b) the 2-D joint path against OpenCV ---------------------------------------------------------
