@@ -153,10 +153,8 @@ class _Batch:
         (unclamped). The gradient of an unseen point is that of the border pixel: the caller
         zeroes it."""
         s = self.s
-        # a NaN pixel (a pose gone NaN in a candidate's descent) reads pixel 0, unseen: cast to
-        # an index it would be any integer at all
-        u = pu.masked_fill(pu.isnan(), 0.0).clamp(0, s.W - 1)
-        v = pv.masked_fill(pv.isnan(), 0.0).clamp(0, s.H - 1)
+        u = pu.clamp(0, s.W - 1)
+        v = pv.clamp(0, s.H - 1)
         # in the image exactly where the clamp changed nothing (NaN compares unequal too)
         seen = (u == pu) & (v == pv)
         u0 = u.floor().clamp_(max=s.W - 2)

@@ -181,6 +181,14 @@ def _refine_from(
     """LM from starts ``rot0 (R, W, K, 3, 3)``, ``p0 (R, W, K, 3)`` of pairs ``rows (R,)``,
     ``cols (R, W)``: cost ``(R, W, K)``, rotation and translation of each. Chunked."""
     r, w, k = rot0.shape[:3]
+    # a start that is not a pose (the 2-D joints' solve gives NaN where they are degenerate)
+    # is no candidate: it descends from its pair's first start instead (a finite pose: no
+    # NaN pixel reaches the image reads, no NaN rotation the smoothness between frames'
+    # candidates) and its cost is infinite (a NaN would win every argmin)
+    void = ~(torch.isfinite(rot0).flatten(3).all(-1) & torch.isfinite(p0).all(-1))  # (R, W, K)
+    if bool(void.any()):
+        rot0 = torch.where(void[..., None, None], rot0[:, :, :1], rot0)
+        p0 = torch.where(void[..., None], p0[:, :, :1], p0)
     rows_n = rows[:, None, None].expand(r, w, k).reshape(-1)
     cols_n = cols[:, :, None].expand(r, w, k).reshape(-1)
     rot0, p0 = rot0.reshape(-1, 3, 3), p0.reshape(-1, 3)
@@ -192,18 +200,12 @@ def _refine_from(
         rot, p, _, cost = _levenberg_marquardt(
             batch, rot0[sl], p0[sl], None, iterations, scene.settings.lm_damping
         )
-        cost = cost + _heading_penalty(scene, rows_n[sl], cols_n[sl], rot)
-        # a start that is not a pose (the 2-D joints' solve gives NaN where they are
-        # degenerate) is no candidate: an infinite cost, where NaN would win every argmin,
-        # and a finite pose (the identity at the origin), where NaN would poison the
-        # smoothness tables between neighbouring frames' candidates
-        bad = cost.isnan() | ~torch.isfinite(rot).flatten(1).all(1) | ~torch.isfinite(p).all(1)
-        eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
-        out_c.append(cost.masked_fill(bad, math.inf))
-        out_r.append(torch.where(bad[:, None, None], eye, rot))
-        out_p.append(p.masked_fill(bad[:, None], 0.0))
+        out_c.append(cost + _heading_penalty(scene, rows_n[sl], cols_n[sl], rot))
+        out_r.append(rot)
+        out_p.append(p)
+    cost = torch.cat(out_c).reshape(r, w, k).masked_fill(void, math.inf)
     return (
-        torch.cat(out_c).reshape(r, w, k),
+        cost,
         torch.cat(out_r).reshape(r, w, k, 3, 3),
         torch.cat(out_p).reshape(r, w, k, 3),
     )
